@@ -1,0 +1,12 @@
+"""Exception hierarchy of the companion package: library code raises these, CLIs print them."""
+
+
+class CompanionError(Exception):
+    """Base class of every error raised on purpose by `companion`."""
+
+
+class ConfigError(CompanionError, ValueError):
+    """A configuration value is missing, of the wrong type or out of range.
+
+    The message always names the field and the allowed range.
+    """

@@ -1,0 +1,14 @@
+"""Exception hierarchy of the simulation harness; the CLI turns these into one clear line."""
+
+from companion.errors import CompanionError, ConfigError
+
+
+class SimError(CompanionError):
+    """Base class of every error raised on purpose by `sim_harness`."""
+
+
+class ControllerError(SimError):
+    """A controller returned commands of the wrong shape or non-finite values."""
+
+
+__all__ = ["ConfigError", "ControllerError", "SimError"]

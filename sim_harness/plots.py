@@ -1,0 +1,136 @@
+"""Figures like the paper's: top-view trajectories, d_min / d_max over time, order over time.
+
+Several runs of one experiment (seeds) are drawn as a mean line with a shaded min-max band;
+a single run is drawn as its line.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
+
+from sim_harness.metrics import COLLISION_THRESHOLD_M  # noqa: E402
+from sim_harness.rollout import FlightLog  # noqa: E402
+from sim_harness.scenarios import SPAWN_CENTER  # noqa: E402
+
+GREY = "0.55"
+
+
+def _agent_colours(n: int) -> list[tuple[float, float, float, float]]:
+    cmap = plt.get_cmap("tab10" if n <= 10 else "tab20")
+    return [cmap(i % cmap.N) for i in range(n)]
+
+
+def draw_trajectories(ax: Axes, log: FlightLog, title: str | None = None) -> None:
+    """Top view (east, north): one colour per agent; square / triangle / circle at the first /
+    middle / last step; spawn area and migration points in grey; the second group dotted."""
+    sc = log.scenario
+    pos = log.pos_world_enu
+    side = sc.config.spawn_side
+    ax.add_patch(Rectangle((SPAWN_CENTER[0] - side / 2, SPAWN_CENTER[1] - side / 2), side, side,
+                           facecolor=GREY, alpha=0.25, edgecolor=GREY, zorder=0))
+    for goal in sc.goals:
+        ax.plot(goal[0], goal[1], "o", ms=14, color=GREY, alpha=0.6, zorder=1)
+    mid = pos.shape[0] // 2
+    for i, colour in enumerate(_agent_colours(sc.n_agents)):
+        style = ":" if sc.groups[i] == 1 else "-"
+        ax.plot(pos[:, i, 0], pos[:, i, 1], style, color=colour, lw=1.3, zorder=2)
+        for step, marker in ((0, "s"), (mid, "^"), (-1, "o")):
+            ax.plot(pos[step, i, 0], pos[step, i, 1], marker, color=colour, ms=5,
+                    mec="k", mew=0.4, zorder=3)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.grid(alpha=0.3)
+    ax.set_title(title or f"{sc.config.name}, {log.controller}: top view")
+
+
+def _band(ax: Axes, logs: Sequence[FlightLog], attr: str, colour: str, label: str) -> None:
+    length = max(log.n_steps for log in logs)
+    data = np.full((len(logs), length), np.nan)
+    for k, log in enumerate(logs):
+        data[k, : log.n_steps] = getattr(log, attr)
+    t = np.arange(length) * logs[0].rates.control_dt_s
+    with np.errstate(all="ignore"):
+        ax.plot(t, np.nanmean(data, axis=0), color=colour, lw=1.6, label=label)
+        if len(logs) > 1:
+            ax.fill_between(t, np.nanmin(data, axis=0), np.nanmax(data, axis=0), color=colour,
+                            alpha=0.2, lw=0)
+
+
+def draw_distances(ax: Axes, groups: dict[str, Sequence[FlightLog]]) -> None:
+    """d_min and d_max over time for each labelled group of runs (e.g. teacher, CNN)."""
+    colours = iter(["tab:blue", "tab:orange", "tab:green", "tab:red"])
+    for label, logs in groups.items():
+        colour = next(colours)
+        _band(ax, logs, "d_max_m", colour, f"{label} $d_{{max}}$")
+        _band(ax, logs, "d_min_m", colour, f"{label} $d_{{min}}$")
+        ax.lines[-1].set_linestyle("--")
+    ax.axhline(COLLISION_THRESHOLD_M, color="k", lw=0.8, ls=":", label="collision (1 m)")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("inter-agent distance [m]")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+
+
+def draw_order(ax: Axes, groups: dict[str, Sequence[FlightLog]]) -> None:
+    """Order parameter over time for each labelled group of runs."""
+    colours = iter(["tab:blue", "tab:orange", "tab:green", "tab:red"])
+    for label, logs in groups.items():
+        _band(ax, logs, "order", next(colours), label)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("order parameter")
+    ax.set_ylim(-1.05, 1.05)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+
+
+def save_flight_figures(log: FlightLog, out_dir: Path) -> dict[str, Path]:
+    """trajectories.png, distances.png, order.png and flight.png (all three side by side)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {name: out_dir / f"{name}.png"
+             for name in ("trajectories", "distances", "order", "flight")}
+    groups = {log.controller: [log]}
+    for name, draw in (("trajectories", lambda ax: draw_trajectories(ax, log)),
+                       ("distances", lambda ax: draw_distances(ax, groups)),
+                       ("order", lambda ax: draw_order(ax, groups))):
+        fig, ax = plt.subplots(figsize=(6, 4.5), dpi=120)
+        draw(ax)
+        fig.tight_layout()
+        fig.savefig(paths[name])
+        plt.close(fig)
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6), dpi=110)
+    draw_trajectories(axes[0], log)
+    draw_distances(axes[1], groups)
+    draw_order(axes[2], groups)
+    axes[1].set_title("min / max inter-agent distance")
+    axes[2].set_title("order parameter")
+    fig.tight_layout()
+    fig.savefig(paths["flight"])
+    plt.close(fig)
+    return paths
+
+
+def save_paper_figure(columns: dict[str, FlightLog], path: Path) -> Path:
+    """The paper's layout for position-based flights: one column per experiment (e.g. common,
+    opposing); rows: trajectories, distances, order."""
+    fig, axes = plt.subplots(3, len(columns), figsize=(6.5 * len(columns), 13), dpi=100,
+                             squeeze=False, gridspec_kw={"height_ratios": [1.4, 1, 1]})
+    for col, (title, log) in enumerate(columns.items()):
+        draw_trajectories(axes[0, col], log, title=f"{title}: {log.controller}, top view")
+        draw_distances(axes[1, col], {log.controller: [log]})
+        draw_order(axes[2, col], {log.controller: [log]})
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

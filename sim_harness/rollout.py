@@ -1,0 +1,225 @@
+"""Fly a scenario with a controller until the flock arrives or the time limit; log every step.
+
+The loop, per control step (10 Hz by default): observe -> controller -> `substeps` physics steps of
+the vehicle model (contacts checked at every physics step) -> metrics. The log holds one row per
+control tick, from t = 0 to the final state: positions, velocities, attitudes, the setpoint issued
+at that tick (NaN on the final row: nothing is issued after the run ends) and the per-step metrics.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from sim_harness import metrics
+from sim_harness.controllers import (
+    SENSE_NEIGHBOURS,
+    Controller,
+    Observation,
+    OwnState,
+    sense_neighbours,
+)
+from sim_harness.errors import ControllerError
+from sim_harness.scenarios import Scenario
+from sim_harness.vehicle import VehicleModel, VehicleParams
+from sim_harness.world import SimRates, World
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class FlightLog:
+    """Per-step record of one flight; T rows (control ticks), N agents."""
+
+    scenario: Scenario
+    controller: str
+    rates: SimRates
+    time_s: FloatArray  # (T,)
+    pos_world_enu: FloatArray  # (T, N, 3)
+    vel_world_enu: FloatArray  # (T, N, 3)
+    q_world_body: FloatArray  # (T, N, 4) wxyz
+    setpoint_world_enu: FloatArray  # (T, N, 3); last row NaN
+    d_min_m: FloatArray  # (T,)
+    d_max_m: FloatArray  # (T,)
+    order: FloatArray  # (T,)
+    contacts: list[tuple[int, int, int]] = field(default_factory=list)  # (step, i, j)
+    stop_reason: str = "time_limit"
+    wall_time_s: float = 0.0
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.time_s.shape[0])
+
+
+def _observe(state_pos: FloatArray, state_vel: FloatArray, state_q: FloatArray, t: float,
+             scenario: Scenario, controller: Controller) -> Observation:
+    own = OwnState(t, state_pos.copy(), state_vel.copy(), state_q.copy(),
+                   scenario.migration_points.copy())
+    neighbours = None
+    if SENSE_NEIGHBOURS in controller.senses:
+        neighbours = sense_neighbours(own.pos_world_enu, scenario.config.flocking.r_max_m)
+    return Observation(own=own, neighbours=neighbours)
+
+
+def has_arrived(scenario: Scenario, pos_world_enu: FloatArray) -> bool:
+    """True when each arrival goal's group centroid is within the arrival radius."""
+    if not scenario.has_goal:
+        return False
+    dist = metrics.group_centroid_distances(pos_world_enu, scenario.groups, scenario.goals)
+    return bool(np.all(dist[scenario.arrival_goals] <= scenario.config.arrival_radius_m))
+
+
+def fly(scenario: Scenario, controller: Controller, rates: SimRates | None = None,
+        vehicle_params: VehicleParams | None = None, progress: bool = False) -> FlightLog:
+    """Run one flight; returns its log (use `summarize` for the paper's numbers)."""
+    rates = rates or SimRates()
+    n = scenario.n_agents
+    vehicle = VehicleModel(vehicle_params or VehicleParams(), scenario.initial_pos_world_enu,
+                           scenario.initial_yaw_rad)
+    max_steps = math.ceil(scenario.config.time_limit_s * rates.control_hz - 1e-9)
+    rows: dict[str, list[FloatArray]] = {k: [] for k in ("pos", "vel", "q", "sp")}
+    contacts: list[tuple[int, int, int]] = []
+    controller.reset(n)
+    stop_reason = "time_limit"
+    started = time.perf_counter()
+    with World(n) as world, tqdm(total=max_steps, disable=not progress, unit="step",
+                                 desc=f"{scenario.config.name} / {controller.name}",
+                                 leave=False) as bar:
+        s = vehicle.state
+        for step in range(max_steps):
+            obs = _observe(s.pos_world_enu, s.vel_world_enu, s.q_world_body,
+                           step * rates.control_dt_s, scenario, controller)
+            setpoint = np.asarray(controller.command(obs), dtype=np.float64)
+            if setpoint.shape != (n, 3) or not np.all(np.isfinite(setpoint)):
+                raise ControllerError(
+                    f"controller {controller.name!r} must return finite setpoints of shape "
+                    f"({n}, 3); got shape {setpoint.shape}"
+                    + ("" if setpoint.shape != (n, 3) else " with non-finite values")
+                )
+            rows["pos"].append(s.pos_world_enu.copy())
+            rows["vel"].append(s.vel_world_enu.copy())
+            rows["q"].append(s.q_world_body.copy())
+            rows["sp"].append(setpoint)
+            touching: set[tuple[int, int]] = set()
+            for _ in range(rates.substeps):
+                vehicle.step(setpoint, rates.physics_dt_s)
+                touching.update(world.contacts(s.pos_world_enu, s.q_world_body))
+            contacts.extend((step + 1, i, j) for i, j in sorted(touching))
+            world.set_poses(s.pos_world_enu, s.q_world_body)
+            bar.update()
+            if has_arrived(scenario, s.pos_world_enu):
+                stop_reason = "arrived"
+                break
+        rows["pos"].append(s.pos_world_enu.copy())
+        rows["vel"].append(s.vel_world_enu.copy())
+        rows["q"].append(s.q_world_body.copy())
+        rows["sp"].append(np.full((n, 3), np.nan))
+    wall = time.perf_counter() - started
+    pos = np.stack(rows["pos"])
+    vel = np.stack(rows["vel"])
+    d_min, d_max = metrics.distance_extremes(pos)
+    return FlightLog(
+        scenario=scenario,
+        controller=controller.name,
+        rates=rates,
+        time_s=np.arange(pos.shape[0]) * rates.control_dt_s,
+        pos_world_enu=pos,
+        vel_world_enu=vel,
+        q_world_body=np.stack(rows["q"]),
+        setpoint_world_enu=np.stack(rows["sp"]),
+        d_min_m=d_min,
+        d_max_m=d_max,
+        order=metrics.order_parameter(vel),
+        contacts=contacts,
+        stop_reason=stop_reason,
+        wall_time_s=wall,
+    )
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def summarize(log: FlightLog, collision_threshold_m: float = metrics.COLLISION_THRESHOLD_M
+              ) -> dict[str, Any]:
+    """The run's numbers as a JSON-ready dict; deterministic (no wall-clock values)."""
+    cfg = log.scenario.config
+    dist = metrics.pair_distances(log.pos_world_enu)  # (T, P)
+    i_idx, j_idx = np.triu_indices(log.scenario.n_agents, k=1)
+    close = dist < collision_threshold_m
+    close_steps = np.flatnonzero(close.any(axis=1)) if dist.shape[1] else np.array([], int)
+    close_pairs = sorted({(int(i_idx[p]), int(j_idx[p])) for p in np.flatnonzero(close.any(0))})
+    arrived = log.stop_reason == "arrived"
+    speeds = np.linalg.norm(log.vel_world_enu, axis=-1)
+    with np.errstate(all="ignore"):
+        d_min_all = float(np.nanmin(log.d_min_m)) if cfg.n_agents > 1 else math.nan
+        d_max_all = float(np.nanmax(log.d_max_m)) if cfg.n_agents > 1 else math.nan
+        order_mean = float(np.nanmean(log.order)) if cfg.n_agents > 1 else math.nan
+    return {
+        "scenario": cfg.name,
+        "controller": log.controller,
+        "n_agents": cfg.n_agents,
+        "seed": cfg.seed,
+        "v_max_mps": cfg.flocking.v_max_mps,
+        "r_max_m": cfg.flocking.r_max_m,
+        "time_limit_s": cfg.time_limit_s,
+        "physics_hz": log.rates.physics_hz,
+        "control_hz": log.rates.control_hz,
+        "steps": log.n_steps - 1,
+        "duration_s": round(float(log.time_s[-1]), 6),
+        "stop_reason": log.stop_reason,
+        "arrived": arrived,
+        "arrival_time_s": round(float(log.time_s[-1]), 6) if arrived else None,
+        "d_min_m": _finite_or_none(d_min_all),
+        "d_max_m": _finite_or_none(d_max_all),
+        "collision_threshold_m": collision_threshold_m,
+        "collision_free": len(close_steps) == 0,
+        "steps_below_threshold": len(close_steps),
+        "first_below_threshold_s": (float(log.time_s[close_steps[0]]) if len(close_steps)
+                                    else None),
+        "pairs_below_threshold": [list(p) for p in close_pairs],
+        "physical_contacts": len(log.contacts),
+        "contact_pairs": [list(p) for p in sorted({(i, j) for _, i, j in log.contacts})],
+        "flock_split": bool(np.nanmax(log.d_max_m) >= cfg.flocking.r_max_m)
+        if cfg.n_agents > 1 else False,
+        "order_mean": _finite_or_none(order_mean),
+        "order_final": _finite_or_none(float(log.order[-1])),
+        "mean_speed_mps": float(speeds.mean()),
+    }
+
+
+def save_flight(log: FlightLog, out_dir: Path) -> dict[str, Path]:
+    """Write `steps.npz` (per-step arrays), `summary.json` and `timing.json` into `out_dir`."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sc = log.scenario
+    paths = {"steps": out_dir / "steps.npz", "summary": out_dir / "summary.json",
+             "timing": out_dir / "timing.json"}
+    np.savez_compressed(
+        paths["steps"],
+        time_s=log.time_s,
+        pos_world_enu=log.pos_world_enu,
+        vel_world_enu=log.vel_world_enu,
+        q_world_body_wxyz=log.q_world_body,
+        setpoint_world_enu=log.setpoint_world_enu,
+        d_min_m=log.d_min_m,
+        d_max_m=log.d_max_m,
+        order=log.order,
+        contacts_step_i_j=np.asarray(log.contacts, dtype=np.int64).reshape(-1, 3),
+        migration_points=sc.migration_points,
+        groups=sc.groups,
+        goals=sc.goals,
+    )
+    paths["summary"].write_text(json.dumps(summarize(log), indent=2) + "\n")
+    simulated = float(log.time_s[-1])
+    timing = {"wall_time_s": log.wall_time_s, "simulated_s": simulated,
+              "real_time_factor": simulated / log.wall_time_s if log.wall_time_s > 0 else None}
+    paths["timing"].write_text(json.dumps(timing, indent=2) + "\n")
+    return paths
