@@ -114,7 +114,7 @@ def migration_velocity(
     r_mig = np.where(has_target[:, None], target - p, 0.0)
     dist = np.linalg.norm(r_mig, axis=-1, keepdims=True)
     unit = np.divide(r_mig, dist, out=np.zeros_like(r_mig), where=dist > COINCIDENT_M)
-    return k_mig * unit
+    return np.asarray(k_mig * unit, dtype=np.float64)
 
 
 def cap_speed(velocity: ArrayLike, v_max_mps: float) -> FloatArray:
@@ -122,7 +122,7 @@ def cap_speed(velocity: ArrayLike, v_max_mps: float) -> FloatArray:
     v = np.asarray(velocity, dtype=np.float64)
     speed = np.linalg.norm(v, axis=-1, keepdims=True)
     scale = np.divide(v_max_mps, speed, out=np.ones_like(speed), where=speed > v_max_mps)
-    return v * scale
+    return np.asarray(v * scale, dtype=np.float64)
 
 
 def command_from_offsets(

@@ -1,7 +1,7 @@
 """Frame conventions, written once.
 
 - **World (simulation):** ENU — x east, y north, z up. Yaw 0 faces east, positive counter-clockwise.
-- **PX4 / MAVSDK local frame:** NED — x north, y east, z down. Yaw 0 faces north, positive clockwise.
+- **PX4 / MAVSDK local frame:** NED — x north, y east, z down. Yaw 0 faces north, clockwise.
 - **Body frame of the CNN targets:** FLU — x forward, y left, z up. It is the body frame that goes
   with ENU (at zero roll, pitch and yaw it coincides with the world axes). PX4's body frame is FRD;
   convert explicitly with `flu_to_frd` / `frd_to_flu` at the autopilot boundary.
@@ -47,13 +47,13 @@ def quat_normalize(q_wxyz: ArrayLike) -> FloatArray:
     if np.any(norm < _EPS):
         raise ValueError("cannot normalize a zero quaternion")
     q = q / norm
-    return np.where(q[..., :1] < 0.0, -q, q)
+    return np.asarray(np.where(q[..., :1] < 0.0, -q, q), dtype=np.float64)
 
 
 def quat_conjugate(q_wxyz: ArrayLike) -> FloatArray:
     """Conjugate (the inverse of a unit quaternion). Shape (..., 4)."""
     q = _as_float(q_wxyz)
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
+    return np.asarray(q * np.array([1.0, -1.0, -1.0, -1.0]), dtype=np.float64)
 
 
 def quat_multiply(a_wxyz: ArrayLike, b_wxyz: ArrayLike) -> FloatArray:
@@ -121,7 +121,9 @@ def rotmat_to_quat(rotmat: ArrayLike) -> FloatArray:
     return quat_normalize(q)
 
 
-def quat_from_euler_zyx(roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLike) -> FloatArray:
+def quat_from_euler_zyx(
+    roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLike
+) -> FloatArray:
     """Quaternion of intrinsic Z-Y-X (yaw, then pitch, then roll) Euler angles."""
     r, p, y = np.broadcast_arrays(_as_float(roll_rad), _as_float(pitch_rad), _as_float(yaw_rad))
     cr, sr = np.cos(r / 2), np.sin(r / 2)
@@ -192,12 +194,14 @@ def rotmat_from_z_axis_and_yaw(z_axis_world: ArrayLike, yaw_rad: ArrayLike) -> F
 
 def body_to_world(vec_body: ArrayLike, rot_world_body: ArrayLike) -> FloatArray:
     """Rotate body-frame vectors (..., 3) into the world with R_world_body (..., 3, 3)."""
-    return np.einsum("...ij,...j->...i", _as_float(rot_world_body), _as_float(vec_body))
+    out = np.einsum("...ij,...j->...i", _as_float(rot_world_body), _as_float(vec_body))
+    return np.asarray(out, dtype=np.float64)
 
 
 def world_to_body(vec_world: ArrayLike, rot_world_body: ArrayLike) -> FloatArray:
     """Rotate world-frame vectors (..., 3) into the body frame: R_world_body^T v."""
-    return np.einsum("...ji,...j->...i", _as_float(rot_world_body), _as_float(vec_world))
+    out = np.einsum("...ji,...j->...i", _as_float(rot_world_body), _as_float(vec_world))
+    return np.asarray(out, dtype=np.float64)
 
 
 def enu_to_ned(vec_enu: ArrayLike) -> FloatArray:

@@ -37,7 +37,9 @@ def require_range(
         right = "inf" if high is None else f"{high:g}"
         lb = "[" if low_inclusive and low is not None else "("
         rb = "]" if high_inclusive and high is not None else ")"
-        raise ConfigError(f"{field}: {number:g} is outside the allowed range {lb}{left}, {right}{rb}")
+        raise ConfigError(
+            f"{field}: {number:g} is outside the allowed range {lb}{left}, {right}{rb}"
+        )
     return number
 
 

@@ -27,10 +27,18 @@ def _add_flight_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--agents", type=int, default=9, help="number of drones (default 9)")
     p.add_argument("--seed", type=int, default=0, help="spawn seed (default 0)")
     p.add_argument("--vmax", type=float, default=2.0, help="speed cap in m/s (default 2)")
-    p.add_argument("--duration", type=float, default=None,
-                   help="time limit in s (default: 90 common, 60 opposing, 30 self-propelled)")
-    p.add_argument("--goal-distance", type=float, default=30.0,
-                   help="migration point distance from the spawn centre in m (default 30)")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="time limit in s (default: 90 common, 60 opposing, 30 self-propelled)",
+    )
+    p.add_argument(
+        "--goal-distance",
+        type=float,
+        default=30.0,
+        help="migration point distance from the spawn centre in m (default 30)",
+    )
     p.add_argument("--physics-hz", type=int, default=100, help="physics rate (default 100)")
     p.add_argument("--control-hz", type=int, default=10, help="control rate (default 10)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -40,13 +48,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="swarm-sim", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p_fly = sub.add_parser("fly", help="fly one scenario with the position-based teacher")
-    p_fly.add_argument("--scenario", default="common",
-                       help=f"one of: {', '.join(SCENARIOS)} (default common)")
-    p_fly.add_argument("--out", type=Path, default=None,
-                       help="output folder (default runs/<scenario>-n<agents>-s<seed>)")
+    p_fly.add_argument(
+        "--scenario", default="common", help=f"one of: {', '.join(SCENARIOS)} (default common)"
+    )
+    p_fly.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default runs/<scenario>-n<agents>-s<seed>)",
+    )
     _add_flight_options(p_fly)
-    p_demo = sub.add_parser("demo", help="the built-in default: common and opposing goals, "
-                                         "9 drones, figures and summaries")
+    p_demo = sub.add_parser(
+        "demo",
+        help="the built-in default: common and opposing goals, 9 drones, figures and summaries",
+    )
     p_demo.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder")
     _add_flight_options(p_demo)
     return parser
@@ -54,8 +69,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _config(args: argparse.Namespace, scenario: str) -> ScenarioConfig:
     return ScenarioConfig(
-        name=scenario, n_agents=args.agents, seed=args.seed,
-        flocking=FlockingParams(v_max_mps=args.vmax), goal_distance_m=args.goal_distance,
+        name=scenario,
+        n_agents=args.agents,
+        seed=args.seed,
+        flocking=FlockingParams(v_max_mps=args.vmax),
+        goal_distance_m=args.goal_distance,
         duration_s=args.duration,
     )
 
@@ -69,8 +87,11 @@ def _fly_one(config: ScenarioConfig, rates: SimRates, out: Path, progress: bool)
 
 
 def _describe(summary: dict[str, Any]) -> str:
-    arrival = (f"arrived after {summary['arrival_time_s']:.1f} s" if summary["arrived"]
-               else f"stopped at the {summary['duration_s']:.0f} s time limit")
+    arrival = (
+        f"arrived after {summary['arrival_time_s']:.1f} s"
+        if summary["arrived"]
+        else f"stopped at the {summary['duration_s']:.0f} s time limit"
+    )
 
     def metres(x: float | None) -> str:
         return "n/a" if x is None else f"{x:.2f} m"
@@ -78,9 +99,11 @@ def _describe(summary: dict[str, Any]) -> str:
     def number(x: float | None) -> str:
         return "n/a" if x is None else f"{x:.2f}"
 
-    return (f"{summary['scenario']:>14} | {arrival} | d_min {metres(summary['d_min_m'])}, "
-            f"d_max {metres(summary['d_max_m'])}, order {number(summary['order_mean'])}, "
-            f"contacts {summary['physical_contacts']}")
+    return (
+        f"{summary['scenario']:>14} | {arrival} | d_min {metres(summary['d_min_m'])}, "
+        f"d_max {metres(summary['d_max_m'])}, order {number(summary['order_mean'])}, "
+        f"contacts {summary['physical_contacts']}"
+    )
 
 
 def run(argv: Sequence[str] | None = None) -> int:
@@ -92,16 +115,20 @@ def run(argv: Sequence[str] | None = None) -> int:
         out = args.out or Path("runs") / f"{config.name}-n{config.n_agents}-s{config.seed}"
         log = _fly_one(config, rates, out, progress)
         print(_describe(summarize(log)))
-        print(f"wrote {out}/ (flight.png, trajectories.png, distances.png, order.png, "
-              f"summary.json, steps.npz)")
+        print(
+            f"wrote {out}/ (flight.png, trajectories.png, distances.png, order.png, "
+            f"summary.json, steps.npz)"
+        )
         return 0
     logs: dict[str, FlightLog] = {}
     for scenario in ("common", "opposing"):
         logs[scenario] = _fly_one(_config(args, scenario), rates, args.out / scenario, progress)
         print(_describe(summarize(logs[scenario])))
     figure = save_paper_figure(logs, args.out / "paper_figure.png")
-    print(f"wrote {figure} and per-flight figures and summaries in {args.out}/common, "
-          f"{args.out}/opposing")
+    print(
+        f"wrote {figure} and per-flight figures and summaries in {args.out}/common, "
+        f"{args.out}/opposing"
+    )
     return 0
 
 

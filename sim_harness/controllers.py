@@ -93,6 +93,9 @@ class TeacherController:
             raise ValueError("the teacher needs the 'neighbours' sense")
         own = observation.own
         return command_from_offsets(
-            sensing.offsets_world_enu, sensing.perceived, own.pos_world_enu,
-            own.migration_point_world_enu, self.params,
+            sensing.offsets_world_enu,
+            sensing.perceived,
+            own.pos_world_enu,
+            own.migration_point_world_enu,
+            self.params,
         ).final

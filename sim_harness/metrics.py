@@ -47,8 +47,9 @@ def order_parameter(velocities: ArrayLike, min_speed_mps: float = 1e-3) -> Float
     return np.asarray(cross / (n * (n - 1)))
 
 
-def close_pairs(positions: ArrayLike, threshold_m: float = COLLISION_THRESHOLD_M
-                ) -> list[tuple[int, int]]:
+def close_pairs(
+    positions: ArrayLike, threshold_m: float = COLLISION_THRESHOLD_M
+) -> list[tuple[int, int]]:
     """Agent pairs (i < j) closer than `threshold_m` at one instant: positions (N, 3)."""
     p = np.asarray(positions, dtype=np.float64)
     i, j = np.triu_indices(p.shape[0], k=1)
@@ -56,8 +57,9 @@ def close_pairs(positions: ArrayLike, threshold_m: float = COLLISION_THRESHOLD_M
     return [(int(a), int(b)) for a, b in zip(i[close], j[close], strict=True)]
 
 
-def group_centroid_distances(positions: ArrayLike, groups: ArrayLike, goals: ArrayLike
-                             ) -> FloatArray:
+def group_centroid_distances(
+    positions: ArrayLike, groups: ArrayLike, goals: ArrayLike
+) -> FloatArray:
     """Distance from each goal to the centroid of the agents assigned to it.
 
     positions (..., N, 3); groups (N,) ints indexing `goals` (G, 3). Returns (..., G).

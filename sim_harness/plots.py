@@ -12,14 +12,14 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.axes import Axes  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.patches import Rectangle
 
-from sim_harness.metrics import COLLISION_THRESHOLD_M  # noqa: E402
-from sim_harness.rollout import FlightLog  # noqa: E402
-from sim_harness.scenarios import SPAWN_CENTER  # noqa: E402
+from sim_harness.metrics import COLLISION_THRESHOLD_M
+from sim_harness.rollout import FlightLog
+from sim_harness.scenarios import SPAWN_CENTER
 
 GREY = "0.55"
 
@@ -35,8 +35,17 @@ def draw_trajectories(ax: Axes, log: FlightLog, title: str | None = None) -> Non
     sc = log.scenario
     pos = log.pos_world_enu
     side = sc.config.spawn_side
-    ax.add_patch(Rectangle((SPAWN_CENTER[0] - side / 2, SPAWN_CENTER[1] - side / 2), side, side,
-                           facecolor=GREY, alpha=0.25, edgecolor=GREY, zorder=0))
+    ax.add_patch(
+        Rectangle(
+            (SPAWN_CENTER[0] - side / 2, SPAWN_CENTER[1] - side / 2),
+            side,
+            side,
+            facecolor=GREY,
+            alpha=0.25,
+            edgecolor=GREY,
+            zorder=0,
+        )
+    )
     for goal in sc.goals:
         ax.plot(goal[0], goal[1], "o", ms=14, color=GREY, alpha=0.6, zorder=1)
     mid = pos.shape[0] // 2
@@ -44,8 +53,16 @@ def draw_trajectories(ax: Axes, log: FlightLog, title: str | None = None) -> Non
         style = ":" if sc.groups[i] == 1 else "-"
         ax.plot(pos[:, i, 0], pos[:, i, 1], style, color=colour, lw=1.3, zorder=2)
         for step, marker in ((0, "s"), (mid, "^"), (-1, "o")):
-            ax.plot(pos[step, i, 0], pos[step, i, 1], marker, color=colour, ms=5,
-                    mec="k", mew=0.4, zorder=3)
+            ax.plot(
+                pos[step, i, 0],
+                pos[step, i, 1],
+                marker,
+                color=colour,
+                ms=5,
+                mec="k",
+                mew=0.4,
+                zorder=3,
+            )
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
@@ -62,8 +79,9 @@ def _band(ax: Axes, logs: Sequence[FlightLog], attr: str, colour: str, label: st
     with np.errstate(all="ignore"):
         ax.plot(t, np.nanmean(data, axis=0), color=colour, lw=1.6, label=label)
         if len(logs) > 1:
-            ax.fill_between(t, np.nanmin(data, axis=0), np.nanmax(data, axis=0), color=colour,
-                            alpha=0.2, lw=0)
+            ax.fill_between(
+                t, np.nanmin(data, axis=0), np.nanmax(data, axis=0), color=colour, alpha=0.2, lw=0
+            )
 
 
 def draw_distances(ax: Axes, groups: dict[str, Sequence[FlightLog]]) -> None:
@@ -97,12 +115,15 @@ def draw_order(ax: Axes, groups: dict[str, Sequence[FlightLog]]) -> None:
 def save_flight_figures(log: FlightLog, out_dir: Path) -> dict[str, Path]:
     """trajectories.png, distances.png, order.png and flight.png (all three side by side)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {name: out_dir / f"{name}.png"
-             for name in ("trajectories", "distances", "order", "flight")}
+    paths = {
+        name: out_dir / f"{name}.png" for name in ("trajectories", "distances", "order", "flight")
+    }
     groups = {log.controller: [log]}
-    for name, draw in (("trajectories", lambda ax: draw_trajectories(ax, log)),
-                       ("distances", lambda ax: draw_distances(ax, groups)),
-                       ("order", lambda ax: draw_order(ax, groups))):
+    for name, draw in (
+        ("trajectories", lambda ax: draw_trajectories(ax, log)),
+        ("distances", lambda ax: draw_distances(ax, groups)),
+        ("order", lambda ax: draw_order(ax, groups)),
+    ):
         fig, ax = plt.subplots(figsize=(6, 4.5), dpi=120)
         draw(ax)
         fig.tight_layout()
@@ -123,8 +144,14 @@ def save_flight_figures(log: FlightLog, out_dir: Path) -> dict[str, Path]:
 def save_paper_figure(columns: dict[str, FlightLog], path: Path) -> Path:
     """The paper's layout for position-based flights: one column per experiment (e.g. common,
     opposing); rows: trajectories, distances, order."""
-    fig, axes = plt.subplots(3, len(columns), figsize=(6.5 * len(columns), 13), dpi=100,
-                             squeeze=False, gridspec_kw={"height_ratios": [1.4, 1, 1]})
+    fig, axes = plt.subplots(
+        3,
+        len(columns),
+        figsize=(6.5 * len(columns), 13),
+        dpi=100,
+        squeeze=False,
+        gridspec_kw={"height_ratios": [1.4, 1, 1]},
+    )
     for col, (title, log) in enumerate(columns.items()):
         draw_trajectories(axes[0, col], log, title=f"{title}: {log.controller}, top view")
         draw_distances(axes[1, col], {log.controller: [log]})

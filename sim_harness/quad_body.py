@@ -10,9 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import pybullet as pb
-
 from companion.validation import require_positive
+from sim_harness.pybullet_import import pb
 
 
 @dataclass(frozen=True)
@@ -48,25 +47,35 @@ class QuadGeometry:
     @property
     def bounding_radius_m(self) -> float:
         """Radius of a sphere about the body centre that contains the whole vehicle."""
-        return math.hypot(self.arm_length_m + self.rotor_radius_m, self.rotor_height_m
-                          + self.rotor_thickness_m / 2)
+        return math.hypot(
+            self.arm_length_m + self.rotor_radius_m,
+            self.rotor_height_m + self.rotor_thickness_m / 2,
+        )
 
 
-def create_quadrotor(client_id: int, geometry: QuadGeometry,
-                     position: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> int:
+def create_quadrotor(
+    client_id: int, geometry: QuadGeometry, position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> int:
     """Create one quadrotor multibody in world `client_id`; returns its body unique id."""
     g = geometry
     cid = {"physicsClientId": client_id}
     body_col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=g.body_half_extents_m, **cid)
-    body_vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=g.body_half_extents_m,
-                                    rgbaColor=g.body_rgba, **cid)
+    body_vis = pb.createVisualShape(
+        pb.GEOM_BOX, halfExtents=g.body_half_extents_m, rgbaColor=g.body_rgba, **cid
+    )
     arm_half = (g.arm_length_m / 2, g.arm_half_width_m, g.arm_half_width_m)
     arm_col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=arm_half, **cid)
     arm_vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=arm_half, rgbaColor=g.arm_rgba, **cid)
-    rotor_col = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=g.rotor_radius_m,
-                                        height=g.rotor_thickness_m, **cid)
-    rotor_vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=g.rotor_radius_m,
-                                     length=g.rotor_thickness_m, rgbaColor=g.rotor_rgba, **cid)
+    rotor_col = pb.createCollisionShape(
+        pb.GEOM_CYLINDER, radius=g.rotor_radius_m, height=g.rotor_thickness_m, **cid
+    )
+    rotor_vis = pb.createVisualShape(
+        pb.GEOM_CYLINDER,
+        radius=g.rotor_radius_m,
+        length=g.rotor_thickness_m,
+        rgbaColor=g.rotor_rgba,
+        **cid,
+    )
     masses, cols, viss, positions, orientations = [], [], [], [], []
     for k in range(4):
         angle = math.pi / 4 + k * math.pi / 2  # X configuration
@@ -81,27 +90,30 @@ def create_quadrotor(client_id: int, geometry: QuadGeometry,
         masses.append(g.rotor_mass_kg)
         cols.append(rotor_col)
         viss.append(rotor_vis)
-        positions.append((math.cos(angle) * g.arm_length_m, math.sin(angle) * g.arm_length_m,
-                          g.rotor_height_m))
+        positions.append(
+            (math.cos(angle) * g.arm_length_m, math.sin(angle) * g.arm_length_m, g.rotor_height_m)
+        )
         orientations.append((0.0, 0.0, 0.0, 1.0))
     n = len(masses)
-    body = int(pb.createMultiBody(
-        baseMass=g.body_mass_kg,
-        baseCollisionShapeIndex=body_col,
-        baseVisualShapeIndex=body_vis,
-        basePosition=position,
-        linkMasses=masses,
-        linkCollisionShapeIndices=cols,
-        linkVisualShapeIndices=viss,
-        linkPositions=positions,
-        linkOrientations=orientations,
-        linkInertialFramePositions=[(0.0, 0.0, 0.0)] * n,
-        linkInertialFrameOrientations=[(0.0, 0.0, 0.0, 1.0)] * n,
-        linkParentIndices=[0] * n,
-        linkJointTypes=[pb.JOINT_FIXED] * n,
-        linkJointAxis=[(0.0, 0.0, 1.0)] * n,
-        **cid,
-    ))
+    body = int(
+        pb.createMultiBody(
+            baseMass=g.body_mass_kg,
+            baseCollisionShapeIndex=body_col,
+            baseVisualShapeIndex=body_vis,
+            basePosition=position,
+            linkMasses=masses,
+            linkCollisionShapeIndices=cols,
+            linkVisualShapeIndices=viss,
+            linkPositions=positions,
+            linkOrientations=orientations,
+            linkInertialFramePositions=[(0.0, 0.0, 0.0)] * n,
+            linkInertialFrameOrientations=[(0.0, 0.0, 0.0, 1.0)] * n,
+            linkParentIndices=[0] * n,
+            linkJointTypes=[pb.JOINT_FIXED] * n,
+            linkJointAxis=[(0.0, 0.0, 1.0)] * n,
+            **cid,
+        )
+    )
     # Colours set per link explicitly: multi-shape calls may drop them.
     pb.changeVisualShape(body, -1, rgbaColor=g.body_rgba, **cid)
     for link in range(4):

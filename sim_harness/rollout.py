@@ -59,10 +59,17 @@ class FlightLog:
         return int(self.time_s.shape[0])
 
 
-def _observe(state_pos: FloatArray, state_vel: FloatArray, state_q: FloatArray, t: float,
-             scenario: Scenario, controller: Controller) -> Observation:
-    own = OwnState(t, state_pos.copy(), state_vel.copy(), state_q.copy(),
-                   scenario.migration_points.copy())
+def _observe(
+    state_pos: FloatArray,
+    state_vel: FloatArray,
+    state_q: FloatArray,
+    t: float,
+    scenario: Scenario,
+    controller: Controller,
+) -> Observation:
+    own = OwnState(
+        t, state_pos.copy(), state_vel.copy(), state_q.copy(), scenario.migration_points.copy()
+    )
     neighbours = None
     if SENSE_NEIGHBOURS in controller.senses:
         neighbours = sense_neighbours(own.pos_world_enu, scenario.config.flocking.r_max_m)
@@ -77,26 +84,45 @@ def has_arrived(scenario: Scenario, pos_world_enu: FloatArray) -> bool:
     return bool(np.all(dist[scenario.arrival_goals] <= scenario.config.arrival_radius_m))
 
 
-def fly(scenario: Scenario, controller: Controller, rates: SimRates | None = None,
-        vehicle_params: VehicleParams | None = None, progress: bool = False) -> FlightLog:
+def fly(
+    scenario: Scenario,
+    controller: Controller,
+    rates: SimRates | None = None,
+    vehicle_params: VehicleParams | None = None,
+    progress: bool = False,
+) -> FlightLog:
     """Run one flight; returns its log (use `summarize` for the paper's numbers)."""
     rates = rates or SimRates()
     n = scenario.n_agents
-    vehicle = VehicleModel(vehicle_params or VehicleParams(), scenario.initial_pos_world_enu,
-                           scenario.initial_yaw_rad)
+    vehicle = VehicleModel(
+        vehicle_params or VehicleParams(), scenario.initial_pos_world_enu, scenario.initial_yaw_rad
+    )
     max_steps = math.ceil(scenario.config.time_limit_s * rates.control_hz - 1e-9)
     rows: dict[str, list[FloatArray]] = {k: [] for k in ("pos", "vel", "q", "sp")}
     contacts: list[tuple[int, int, int]] = []
     controller.reset(n)
     stop_reason = "time_limit"
     started = time.perf_counter()
-    with World(n) as world, tqdm(total=max_steps, disable=not progress, unit="step",
-                                 desc=f"{scenario.config.name} / {controller.name}",
-                                 leave=False) as bar:
+    with (
+        World(n) as world,
+        tqdm(
+            total=max_steps,
+            disable=not progress,
+            unit="step",
+            desc=f"{scenario.config.name} / {controller.name}",
+            leave=False,
+        ) as bar,
+    ):
         s = vehicle.state
         for step in range(max_steps):
-            obs = _observe(s.pos_world_enu, s.vel_world_enu, s.q_world_body,
-                           step * rates.control_dt_s, scenario, controller)
+            obs = _observe(
+                s.pos_world_enu,
+                s.vel_world_enu,
+                vehicle.q_world_body,
+                step * rates.control_dt_s,
+                scenario,
+                controller,
+            )
             setpoint = np.asarray(controller.command(obs), dtype=np.float64)
             if setpoint.shape != (n, 3) or not np.all(np.isfinite(setpoint)):
                 raise ControllerError(
@@ -106,21 +132,22 @@ def fly(scenario: Scenario, controller: Controller, rates: SimRates | None = Non
                 )
             rows["pos"].append(s.pos_world_enu.copy())
             rows["vel"].append(s.vel_world_enu.copy())
-            rows["q"].append(s.q_world_body.copy())
+            rows["q"].append(vehicle.q_world_body.copy())
             rows["sp"].append(setpoint)
             touching: set[tuple[int, int]] = set()
             for _ in range(rates.substeps):
                 vehicle.step(setpoint, rates.physics_dt_s)
-                touching.update(world.contacts(s.pos_world_enu, s.q_world_body))
+                if world.may_touch(s.pos_world_enu):
+                    touching.update(world.contacts(s.pos_world_enu, vehicle.q_world_body))
             contacts.extend((step + 1, i, j) for i, j in sorted(touching))
-            world.set_poses(s.pos_world_enu, s.q_world_body)
+            world.set_poses(s.pos_world_enu, vehicle.q_world_body)
             bar.update()
             if has_arrived(scenario, s.pos_world_enu):
                 stop_reason = "arrived"
                 break
         rows["pos"].append(s.pos_world_enu.copy())
         rows["vel"].append(s.vel_world_enu.copy())
-        rows["q"].append(s.q_world_body.copy())
+        rows["q"].append(vehicle.q_world_body.copy())
         rows["sp"].append(np.full((n, 3), np.nan))
     wall = time.perf_counter() - started
     pos = np.stack(rows["pos"])
@@ -148,8 +175,9 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def summarize(log: FlightLog, collision_threshold_m: float = metrics.COLLISION_THRESHOLD_M
-              ) -> dict[str, Any]:
+def summarize(
+    log: FlightLog, collision_threshold_m: float = metrics.COLLISION_THRESHOLD_M
+) -> dict[str, Any]:
     """The run's numbers as a JSON-ready dict; deterministic (no wall-clock values)."""
     cfg = log.scenario.config
     dist = metrics.pair_distances(log.pos_world_enu)  # (T, P)
@@ -183,13 +211,15 @@ def summarize(log: FlightLog, collision_threshold_m: float = metrics.COLLISION_T
         "collision_threshold_m": collision_threshold_m,
         "collision_free": len(close_steps) == 0,
         "steps_below_threshold": len(close_steps),
-        "first_below_threshold_s": (float(log.time_s[close_steps[0]]) if len(close_steps)
-                                    else None),
+        "first_below_threshold_s": (
+            float(log.time_s[close_steps[0]]) if len(close_steps) else None
+        ),
         "pairs_below_threshold": [list(p) for p in close_pairs],
         "physical_contacts": len(log.contacts),
         "contact_pairs": [list(p) for p in sorted({(i, j) for _, i, j in log.contacts})],
         "flock_split": bool(np.nanmax(log.d_max_m) >= cfg.flocking.r_max_m)
-        if cfg.n_agents > 1 else False,
+        if cfg.n_agents > 1
+        else False,
         "order_mean": _finite_or_none(order_mean),
         "order_final": _finite_or_none(float(log.order[-1])),
         "mean_speed_mps": float(speeds.mean()),
@@ -200,8 +230,11 @@ def save_flight(log: FlightLog, out_dir: Path) -> dict[str, Path]:
     """Write `steps.npz` (per-step arrays), `summary.json` and `timing.json` into `out_dir`."""
     out_dir.mkdir(parents=True, exist_ok=True)
     sc = log.scenario
-    paths = {"steps": out_dir / "steps.npz", "summary": out_dir / "summary.json",
-             "timing": out_dir / "timing.json"}
+    paths = {
+        "steps": out_dir / "steps.npz",
+        "summary": out_dir / "summary.json",
+        "timing": out_dir / "timing.json",
+    }
     np.savez_compressed(
         paths["steps"],
         time_s=log.time_s,
@@ -219,7 +252,10 @@ def save_flight(log: FlightLog, out_dir: Path) -> dict[str, Path]:
     )
     paths["summary"].write_text(json.dumps(summarize(log), indent=2) + "\n")
     simulated = float(log.time_s[-1])
-    timing = {"wall_time_s": log.wall_time_s, "simulated_s": simulated,
-              "real_time_factor": simulated / log.wall_time_s if log.wall_time_s > 0 else None}
+    timing = {
+        "wall_time_s": log.wall_time_s,
+        "simulated_s": simulated,
+        "real_time_factor": simulated / log.wall_time_s if log.wall_time_s > 0 else None,
+    }
     paths["timing"].write_text(json.dumps(timing, indent=2) + "\n")
     return paths

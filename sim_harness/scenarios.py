@@ -53,8 +53,9 @@ class ScenarioConfig:
 
     def __post_init__(self) -> None:
         if self.name not in SCENARIOS:
-            raise ConfigError(f"scenario: unknown name {self.name!r}; choose one of "
-                              f"{', '.join(SCENARIOS)}")
+            raise ConfigError(
+                f"scenario: unknown name {self.name!r}; choose one of {', '.join(SCENARIOS)}"
+            )
         require_int_range("scenario.n_agents", self.n_agents, 1, 1000)
         require_int_range("scenario.seed", self.seed, 0)
         require_positive("scenario.goal_distance_m", self.goal_distance_m)
@@ -63,8 +64,9 @@ class ScenarioConfig:
         require_range("scenario.spawn_min_separation_m", self.spawn_min_separation_m, 0.0)
         require_positive("scenario.arrival_radius_m", self.arrival_radius_m)
         if self.duration_s is not None:
-            require_range("scenario.duration_s", self.duration_s, 0.0, 86_400.0,
-                          low_inclusive=False)
+            require_range(
+                "scenario.duration_s", self.duration_s, 0.0, 86_400.0, low_inclusive=False
+            )
 
     @property
     def spawn_side(self) -> float:
@@ -98,9 +100,14 @@ class Scenario:
         return len(self.arrival_goals) > 0
 
 
-def spawn_positions(rng: np.random.Generator, n: int, center: tuple[float, float, float],
-                    side_m: float, min_separation_m: float, max_tries: int = 200_000
-                    ) -> FloatArray:
+def spawn_positions(
+    rng: np.random.Generator,
+    n: int,
+    center: tuple[float, float, float],
+    side_m: float,
+    min_separation_m: float,
+    max_tries: int = 200_000,
+) -> FloatArray:
     """N points uniform in a cube, pairwise >= `min_separation_m` (sequential rejection)."""
     points = np.empty((n, 3))
     placed = 0
@@ -113,7 +120,10 @@ def spawn_positions(rng: np.random.Generator, n: int, center: tuple[float, float
                 f"in a {side_m:g} m cube; enlarge the cube or lower the separation"
             )
         candidate = np.asarray(center) + rng.uniform(-side_m / 2, side_m / 2, size=3)
-        if placed and np.min(np.linalg.norm(points[:placed] - candidate, axis=1)) < min_separation_m:
+        if (
+            placed
+            and np.min(np.linalg.norm(points[:placed] - candidate, axis=1)) < min_separation_m
+        ):
             continue
         points[placed] = candidate
         placed += 1
@@ -125,8 +135,7 @@ def build_scenario(config: ScenarioConfig) -> Scenario:
     rng = np.random.default_rng(config.seed)
     n = config.n_agents
     center = np.asarray(SPAWN_CENTER)
-    pos = spawn_positions(rng, n, SPAWN_CENTER, config.spawn_side,
-                          config.spawn_min_separation_m)
+    pos = spawn_positions(rng, n, SPAWN_CENTER, config.spawn_side, config.spawn_min_separation_m)
     yaw = rng.uniform(-np.pi, np.pi, size=n)
     east = np.array([config.goal_distance_m, 0.0, 0.0])
     if config.name == "common":

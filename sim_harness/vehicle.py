@@ -69,8 +69,14 @@ class VehicleParams:
         require_positive("vehicle.mass_kg", self.mass_kg)
         for name in ("vel_p_xy", "vel_p_z"):
             require_positive(f"vehicle.{name}", getattr(self, name))
-        for name in ("vel_i_xy", "vel_d_xy", "vel_i_z", "yaw_hold_speed_mps", "ground_clearance_m",
-                     "drag_per_s"):
+        for name in (
+            "vel_i_xy",
+            "vel_d_xy",
+            "vel_i_z",
+            "yaw_hold_speed_mps",
+            "ground_clearance_m",
+            "drag_per_s",
+        ):
             require_non_negative(f"vehicle.{name}", getattr(self, name))
         for name in (
             "acc_xy_max_mps2",
@@ -84,12 +90,20 @@ class VehicleParams:
             require_positive(f"vehicle.{name}", getattr(self, name))
         # Descending faster than free fall would need negative thrust.
         require_range(
-            "vehicle.acc_down_max_mps2", self.acc_down_max_mps2, 0.0, GRAVITY_MPS2,
-            low_inclusive=False, high_inclusive=False,
+            "vehicle.acc_down_max_mps2",
+            self.acc_down_max_mps2,
+            0.0,
+            GRAVITY_MPS2,
+            low_inclusive=False,
+            high_inclusive=False,
         )
         require_range(
-            "vehicle.tilt_max_deg", self.tilt_max_deg, 0.0, 90.0,
-            low_inclusive=False, high_inclusive=False,
+            "vehicle.tilt_max_deg",
+            self.tilt_max_deg,
+            0.0,
+            90.0,
+            low_inclusive=False,
+            high_inclusive=False,
         )
 
 
@@ -101,7 +115,6 @@ class VehicleState:
     vel_world_enu: FloatArray  # (N, 3) m/s
     acc_world_enu: FloatArray  # (N, 3) m/s^2, thrust acceleration minus gravity (lagged)
     yaw_rad: FloatArray  # (N,) ENU heading
-    q_world_body: FloatArray  # (N, 4) wxyz, body FLU -> world ENU
     vel_error_integral: FloatArray = field(repr=False)  # (N, 3) m
 
     @property
@@ -112,14 +125,21 @@ class VehicleState:
 class VehicleModel:
     """N velocity-controlled multicopters; call `step` at the physics rate."""
 
-    def __init__(self, params: VehicleParams, initial_pos_world_enu: ArrayLike,
-                 initial_yaw_rad: ArrayLike | None = None) -> None:
+    def __init__(
+        self,
+        params: VehicleParams,
+        initial_pos_world_enu: ArrayLike,
+        initial_yaw_rad: ArrayLike | None = None,
+    ) -> None:
         pos = np.array(initial_pos_world_enu, dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] != 3:
             raise ValueError(f"initial positions must have shape (N, 3), got {pos.shape}")
         n = pos.shape[0]
-        yaw = (np.zeros(n) if initial_yaw_rad is None
-               else np.broadcast_to(np.asarray(initial_yaw_rad, dtype=np.float64), (n,)).copy())
+        yaw = (
+            np.zeros(n)
+            if initial_yaw_rad is None
+            else np.broadcast_to(np.asarray(initial_yaw_rad, dtype=np.float64), (n,)).copy()
+        )
         self.params = params
         self._tan_tilt_max = math.tan(math.radians(params.tilt_max_deg))
         self.state = VehicleState(
@@ -127,17 +147,34 @@ class VehicleModel:
             vel_world_enu=np.zeros((n, 3)),
             acc_world_enu=np.zeros((n, 3)),
             yaw_rad=yaw,
-            q_world_body=quat_from_yaw(yaw),
             vel_error_integral=np.zeros((n, 3)),
         )
+        self._q_world_body: FloatArray | None = quat_from_yaw(yaw)
+
+    @property
+    def q_world_body(self) -> FloatArray:
+        """Attitudes (N, 4) wxyz, body FLU -> world ENU: thrust along body z, heading = yaw.
+
+        Computed on demand (and cached until the next step): the physics loop itself never
+        needs it, only contacts, cameras and logs do.
+        """
+        if self._q_world_body is None:
+            s = self.state
+            thrust_dir = s.acc_world_enu + np.array([0.0, 0.0, GRAVITY_MPS2])
+            self._q_world_body = rotmat_to_quat(rotmat_from_z_axis_and_yaw(thrust_dir, s.yaw_rad))
+        return self._q_world_body
 
     def clamp_setpoint(self, vel_sp_world_enu: FloatArray) -> FloatArray:
         """Velocity setpoint limited like PX4 (horizontal norm, climb and descent rates)."""
         p = self.params
         sp = np.array(vel_sp_world_enu, dtype=np.float64)
         speed_xy = np.hypot(sp[:, 0], sp[:, 1])
-        scale = np.divide(p.vel_xy_max_mps, speed_xy, out=np.ones_like(speed_xy),
-                          where=speed_xy > p.vel_xy_max_mps)
+        scale = np.divide(
+            p.vel_xy_max_mps,
+            speed_xy,
+            out=np.ones_like(speed_xy),
+            where=speed_xy > p.vel_xy_max_mps,
+        )
         sp[:, :2] *= scale[:, None]
         sp[:, 2] = np.clip(sp[:, 2], -p.vel_down_max_mps, p.vel_up_max_mps)
         return sp
@@ -162,7 +199,9 @@ class VehicleModel:
         out[:, 2] = np.clip(out[:, 2], -p.acc_down_max_mps2, p.acc_up_max_mps2)
         acc_xy_max = np.minimum(p.acc_xy_max_mps2, (GRAVITY_MPS2 + out[:, 2]) * self._tan_tilt_max)
         norm_xy = np.hypot(out[:, 0], out[:, 1])
-        scale = np.divide(acc_xy_max, norm_xy, out=np.ones_like(norm_xy), where=norm_xy > acc_xy_max)
+        scale = np.divide(
+            acc_xy_max, norm_xy, out=np.ones_like(norm_xy), where=norm_xy > acc_xy_max
+        )
         out[:, :2] *= scale[:, None]
         return out
 
@@ -188,7 +227,7 @@ class VehicleModel:
 
         yaw_target = yaw_from_velocity(sp, s.yaw_rad, p.yaw_hold_speed_mps)
         max_turn = math.radians(p.yaw_rate_max_deg_s) * dt_s
-        s.yaw_rad = wrap_angle(s.yaw_rad + np.clip(wrap_angle(yaw_target - s.yaw_rad),
-                                                   -max_turn, max_turn))
-        thrust_dir = s.acc_world_enu + np.array([0.0, 0.0, GRAVITY_MPS2])
-        s.q_world_body = rotmat_to_quat(rotmat_from_z_axis_and_yaw(thrust_dir, s.yaw_rad))
+        s.yaw_rad = wrap_angle(
+            s.yaw_rad + np.clip(wrap_angle(yaw_target - s.yaw_rad), -max_turn, max_turn)
+        )
+        self._q_world_body = None

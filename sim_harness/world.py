@@ -11,11 +11,11 @@ from dataclasses import dataclass
 from types import TracebackType
 
 import numpy as np
-import pybullet as pb
 from numpy.typing import ArrayLike
 
 from companion.validation import require_int_range
 from sim_harness.errors import ConfigError, SimError
+from sim_harness.pybullet_import import pb
 from sim_harness.quad_body import QuadGeometry, create_quadrotor
 
 
@@ -78,24 +78,28 @@ class World:
         pos = np.asarray(pos_world_enu, dtype=np.float64)
         q = np.asarray(q_world_body, dtype=np.float64)
         for body, p, (w, x, y, z) in zip(self.body_ids, pos.tolist(), q.tolist(), strict=True):
-            pb.resetBasePositionAndOrientation(body, p, (x, y, z, w),
-                                               physicsClientId=self.client_id)
+            pb.resetBasePositionAndOrientation(
+                body, p, (x, y, z, w), physicsClientId=self.client_id
+            )
+
+    def may_touch(self, pos_world_enu: ArrayLike) -> bool:
+        """False when no pair is within twice the bounding radius (no contact is possible)."""
+        if self.n_agents < 2:
+            return False
+        pos = np.asarray(pos_world_enu, dtype=np.float64)
+        diff = pos[:, None, :] - pos[None, :, :]
+        d2 = np.einsum("ijk,ijk->ij", diff, diff)
+        np.fill_diagonal(d2, np.inf)
+        return bool(d2.min() <= (2.0 * self.geometry.bounding_radius_m) ** 2)
 
     def contacts(self, pos_world_enu: ArrayLike, q_world_body: ArrayLike) -> list[tuple[int, int]]:
         """Agent index pairs (i < j) whose bodies touch at these poses, sorted.
 
-        Pairs farther apart than twice the bounding radius cannot touch: when no pair is that
-        close, pybullet is not asked (and the bodies are not moved).
+        Moves the bodies to these poses. Callers on a hot path ask `may_touch` first.
         """
-        pos = np.asarray(pos_world_enu, dtype=np.float64)
-        if self.n_agents < 2:
+        if not self.may_touch(pos_world_enu):
             return []
-        diff = pos[:, None, :] - pos[None, :, :]
-        d2 = np.einsum("ijk,ijk->ij", diff, diff)
-        np.fill_diagonal(d2, np.inf)
-        if d2.min() > (2.0 * self.geometry.bounding_radius_m) ** 2:
-            return []
-        self.set_poses(pos, q_world_body)
+        self.set_poses(pos_world_enu, q_world_body)
         pb.performCollisionDetection(physicsClientId=self.client_id)
         pairs: set[tuple[int, int]] = set()
         for point in pb.getContactPoints(physicsClientId=self.client_id):
@@ -113,7 +117,10 @@ class World:
     def __enter__(self) -> World:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
         self.close()
-
