@@ -2,6 +2,7 @@
 
     swarm-sim demo                       # the built-in default: 9 drones, common + opposing goals
     swarm-sim fly --scenario common --agents 9 --seed 0 --out runs/common
+    swarm-sim view --scenario common --seed 0 --step 20 --agent 0   # what one drone sees
 
 Errors are printed as one line on stderr with exit status 2.
 """
@@ -9,12 +10,13 @@ Errors are printed as one line on stderr with exit status 2.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from companion.errors import CompanionError
+from companion.errors import CompanionError, ConfigError
 from companion.flocking import FlockingParams
 from sim_harness.controllers import TeacherController
 from sim_harness.plots import save_flight_figures, save_paper_figure
@@ -58,6 +60,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="output folder (default runs/<scenario>-n<agents>-s<seed>)",
     )
     _add_flight_options(p_fly)
+    p_view = sub.add_parser("view", help="write one drone's 64x384 camera image at a step")
+    p_view.add_argument("--scenario", default="common", help=f"one of: {', '.join(SCENARIOS)}")
+    p_view.add_argument("--step", type=int, default=0, help="control step (teacher flight)")
+    p_view.add_argument("--agent", type=int, default=0, help="which drone's view")
+    p_view.add_argument("--out", type=Path, default=Path("runs/view"), help="output folder")
+    _add_flight_options(p_view)
     p_demo = sub.add_parser(
         "demo",
         help="the built-in default: common and opposing goals, 9 drones, figures and summaries",
@@ -106,6 +114,38 @@ def _describe(summary: dict[str, Any]) -> str:
     )
 
 
+def _view(args: argparse.Namespace, rates: SimRates) -> int:
+    from sim_harness.render import PyBulletRenderer
+    from sim_harness.view import save_layout, save_strip
+    from sim_harness.world import World
+
+    config = _config(args, args.scenario)
+    if not 0 <= args.agent < config.n_agents:
+        raise ConfigError(
+            f"agent: {args.agent} is outside the allowed range [0, {config.n_agents - 1}]"
+        )
+    if args.step < 0:
+        raise ConfigError(f"step: {args.step} must be >= 0")
+    config = dataclasses.replace(config, duration_s=max(args.step, 1) / rates.control_hz)
+    scenario = build_scenario(config)
+    log = fly(scenario, TeacherController(config.flocking), rates, progress=False)
+    step = min(args.step, log.n_steps - 1)
+    with World(config.n_agents) as world:
+        image = PyBulletRenderer().render(
+            world, log.pos_world_enu[step], log.q_world_body[step], [args.agent]
+        )[0]
+    stem = f"{config.name}-s{config.seed}-step{step}-agent{args.agent}"
+    strip = save_strip(image, args.out / f"{stem}-strip.png")
+    layout = save_layout(
+        image,
+        args.out / f"{stem}-faces.png",
+        f"{config.name}, seed {config.seed}, step {step} "
+        f"(t = {step / rates.control_hz:.1f} s), drone {args.agent}",
+    )
+    print(f"wrote {strip} (64x384, enlarged) and {layout}")
+    return 0
+
+
 def run(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     rates = SimRates(physics_hz=args.physics_hz, control_hz=args.control_hz)
@@ -120,6 +160,8 @@ def run(argv: Sequence[str] | None = None) -> int:
             f"summary.json, steps.npz)"
         )
         return 0
+    if args.command == "view":
+        return _view(args, rates)
     logs: dict[str, FlightLog] = {}
     for scenario in ("common", "opposing"):
         logs[scenario] = _fly_one(_config(args, scenario), rates, args.out / scenario, progress)

@@ -140,3 +140,27 @@ def test_controller_returning_nan_is_refused() -> None:
 
     with pytest.raises(ControllerError, match="broken"):
         fly(build_scenario(ScenarioConfig(duration_s=1.0)), Broken())
+
+
+def test_physical_contact_during_a_flight_is_reported() -> None:
+    class Rammer:
+        """Drives agent 0 straight at agent 1; everyone else hovers."""
+
+        name = "rammer"
+        senses = frozenset()
+
+        def reset(self, n_agents: int) -> None:
+            pass
+
+        def command(self, observation: Observation) -> np.ndarray:
+            pos = observation.own.pos_world_enu
+            cmd = np.zeros_like(pos)
+            cmd[0] = 2.0 * (pos[1] - pos[0]) / np.linalg.norm(pos[1] - pos[0])
+            return cmd
+
+    log = fly(build_scenario(ScenarioConfig(n_agents=3, duration_s=8.0)), Rammer())
+    summary = summarize(log)
+    assert summary["physical_contacts"] > 0
+    assert summary["contact_pairs"] == [[0, 1]]
+    assert not summary["collision_free"]
+    assert [0, 1] in summary["pairs_below_threshold"]
