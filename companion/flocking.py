@@ -77,15 +77,18 @@ def reynolds_from_offsets(
 
     Args:
         offsets: (N, M, 3) offsets r_ij from agent i to candidate j, world frame, metres.
-        valid: (N, M) bool, False for padding and for i itself.
+        valid: (N, M) bool, False for padding and for i itself; invalid slots may hold anything
+            (NaN included) and are ignored.
         params: gains; `r_max_m` selects neighbours among the valid candidates.
 
     Returns:
         (separation (N, 3), cohesion (N, 3), number of neighbours (N,)).
     """
-    r = np.asarray(offsets, dtype=np.float64)
+    valid_mask = np.asarray(valid, dtype=bool)
+    # Invalid slots are ignored whatever they hold (NaN padding included).
+    r = np.where(valid_mask[..., None], np.asarray(offsets, dtype=np.float64), 0.0)
     d2 = np.einsum("nmk,nmk->nm", r, r)
-    neighbour = np.asarray(valid, dtype=bool) & (d2 < params.r_max_m**2)
+    neighbour = valid_mask & (d2 < params.r_max_m**2)
     count = neighbour.sum(axis=1)
     # 1/|r|^2 on non-coincident neighbours, 0 elsewhere (never divides by zero).
     far_enough = neighbour & (d2 >= COINCIDENT_M**2)

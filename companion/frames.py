@@ -37,7 +37,9 @@ def _as_float(x: ArrayLike) -> FloatArray:
 def wrap_angle(angle_rad: ArrayLike) -> FloatArray:
     """Wrap angles to [-pi, pi)."""
     a = _as_float(angle_rad)
-    return np.asarray((a + np.pi) % (2.0 * np.pi) - np.pi, dtype=np.float64)
+    wrapped = (a + np.pi) % (2.0 * np.pi) - np.pi
+    # The modulo of a tiny negative number can round up to exactly 2 pi, giving +pi.
+    return np.asarray(np.where(wrapped >= np.pi, wrapped - 2.0 * np.pi, wrapped), dtype=np.float64)
 
 
 def quat_normalize(q_wxyz: ArrayLike) -> FloatArray:
