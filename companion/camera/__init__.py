@@ -1,0 +1,43 @@
+"""OpenMV camera link: wire protocol v1 (docs/camera-protocol.md), encoders and streaming parser."""
+
+from companion.camera.protocol import (
+    HEADER_SIZE,
+    MAGIC,
+    MAX_PAYLOAD_SIZE,
+    PROTOCOL_VERSION,
+    FrameMessage,
+    FrameParser,
+    HelloMessage,
+    Message,
+    MessageType,
+    ParserCounters,
+    PixelFormat,
+    ProtocolError,
+    StatusMessage,
+    crc16_ccitt_false,
+    encode_frame,
+    encode_hello,
+    encode_message,
+    encode_status,
+)
+
+__all__ = [
+    "HEADER_SIZE",
+    "MAGIC",
+    "MAX_PAYLOAD_SIZE",
+    "PROTOCOL_VERSION",
+    "FrameMessage",
+    "FrameParser",
+    "HelloMessage",
+    "Message",
+    "MessageType",
+    "ParserCounters",
+    "PixelFormat",
+    "ProtocolError",
+    "StatusMessage",
+    "crc16_ccitt_false",
+    "encode_frame",
+    "encode_hello",
+    "encode_message",
+    "encode_status",
+]

@@ -1,0 +1,499 @@
+"""Camera wire protocol: encoders, header layout, streaming parser under garbage and corruption."""
+
+from __future__ import annotations
+
+import itertools
+import struct
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from companion.camera import protocol as p
+from companion.camera.protocol import (
+    HEADER_SIZE,
+    MAGIC,
+    MAX_PAYLOAD_SIZE,
+    FrameMessage,
+    FrameParser,
+    HelloMessage,
+    Message,
+    MessageType,
+    PixelFormat,
+    ProtocolError,
+    StatusMessage,
+    crc16_ccitt_false,
+    encode_frame,
+    encode_hello,
+    encode_message,
+    encode_status,
+)
+from companion.errors import CompanionError
+
+# derandomize: the same examples on every run, so CI never meets a fresh 2^-16 CRC-16 collision.
+FUZZ = settings(
+    max_examples=200,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+BUFFER_BOUND = HEADER_SIZE + MAX_PAYLOAD_SIZE
+
+
+def gray(height: int, width: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (height, width), dtype=np.uint8)
+
+
+def raw_message(
+    *,
+    version: int = 1,
+    msg_type: int = MessageType.FRAME,
+    camera_id: int = 0,
+    pixel_format: int = PixelFormat.GRAY8,
+    seq: int = 0,
+    timestamp_us: int = 0,
+    width: int = 0,
+    height: int = 0,
+    payload: bytes = b"",
+    payload_len: int | None = None,
+) -> bytes:
+    """Any header with valid CRCs, rules or not."""
+    length = len(payload) if payload_len is None else payload_len
+    head = bytearray(p.HEADER_STRUCT.pack(
+        MAGIC, version, msg_type, camera_id, pixel_format, 0, seq, timestamp_us, width, height,
+        length, crc16_ccitt_false(payload), 0,
+    ))  # fmt: skip
+    struct.pack_into("<H", head, 30, crc16_ccitt_false(head[:30]))
+    return bytes(head) + payload
+
+
+def feed_chunks(parser: FrameParser, data: bytes, cuts: list[int]) -> list[Message]:
+    out: list[Message] = []
+    bounds = [0, *sorted(c % (len(data) + 1) for c in cuts), len(data)]
+    for a, b in itertools.pairwise(bounds):
+        out += parser.feed(data[a:b])
+        assert parser.buffered_bytes < BUFFER_BOUND
+    return out
+
+
+def same(a: Message, b: Message) -> bool:
+    if isinstance(a, FrameMessage) and isinstance(b, FrameMessage):
+        return (a.camera_id, a.seq, a.timestamp_us) == (b.camera_id, b.seq, b.timestamp_us) and (
+            np.array_equal(a.image, b.image)
+        )
+    return a == b
+
+
+STATUS_ARGS: dict[str, Any] = {
+    "camera_id": 0,
+    "seq": 0,
+    "timestamp_us": 0,
+    "fps_hz": 10.0,
+    "frames_sent": 0,
+    "frames_dropped": 0,
+    "exposure_us": 0,
+}
+
+
+def decode_one(data: bytes) -> Message:
+    parser = FrameParser()
+    msgs = parser.feed(data)
+    assert len(msgs) == 1 and parser.counters.frames_ok == 1 and parser.buffered_bytes == 0
+    return msgs[0]
+
+
+# --- encoders, layout, round trips ------------------------------------------------------------
+
+
+def test_crc_is_ccitt_false_test_vector() -> None:
+    assert crc16_ccitt_false(b"123456789") == 0x29B1
+    assert crc16_ccitt_false(b"") == 0xFFFF
+
+
+def test_header_layout_matches_the_documented_offsets() -> None:
+    image = gray(64, 64)
+    data = encode_frame(image, camera_id=5, seq=0x11223344, timestamp_us=0x0102030405060708)
+    assert struct.calcsize(p.HEADER_FORMAT) == HEADER_SIZE == 32
+    assert len(data) == 32 + 4096
+    assert data[0:2] == b"\xa5\x5a" and data[2] == 1 and data[3] == 1 and data[4] == 5
+    assert data[5] == 1 and data[6:8] == b"\x00\x00"
+    assert data[8:12] == bytes.fromhex("44332211")
+    assert data[12:20] == bytes.fromhex("0807060504030201")
+    assert data[20:22] == b"\x40\x00" and data[22:24] == b"\x40\x00"
+    assert data[24:28] == (4096).to_bytes(4, "little")
+    assert int.from_bytes(data[28:30], "little") == crc16_ccitt_false(image.tobytes())
+    assert int.from_bytes(data[30:32], "little") == crc16_ccitt_false(data[:30])
+    assert data[32:] == image.tobytes()
+
+
+def test_frame_round_trip_gives_a_read_only_image() -> None:
+    image = gray(64, 64, seed=1)
+    data = encode_frame(image, camera_id=2, seq=7, timestamp_us=123_456_789)
+    msg = decode_one(data)
+    assert isinstance(msg, FrameMessage)
+    assert (msg.camera_id, msg.seq, msg.timestamp_us) == (2, 7, 123_456_789)
+    assert msg.pixel_format is PixelFormat.GRAY8
+    assert msg.image.dtype == np.uint8 and msg.image.shape == (64, 64)
+    assert np.array_equal(msg.image, image)
+    assert not msg.image.flags.writeable
+    assert encode_message(msg) == data
+
+
+def test_non_square_and_non_contiguous_frames_round_trip() -> None:
+    image = gray(10, 30)[:, ::2]  # (10, 15), a strided view
+    msg = decode_one(encode_frame(image, camera_id=0, seq=0, timestamp_us=0))
+    assert isinstance(msg, FrameMessage) and np.array_equal(msg.image, image)
+
+
+def test_hello_round_trip() -> None:
+    data = encode_hello(
+        camera_id=255,
+        seq=0,
+        timestamp_us=2**63,
+        unique_id=bytes.fromhex("001a2b3c4d5e6f7081920304"),
+        firmware="openmv-cam-1.0.0",
+        platform="omv-4.5.0",
+    )
+    msg = decode_one(data)
+    assert msg == HelloMessage(
+        255, 0, 2**63, "001a2b3c4d5e6f7081920304", "openmv-cam-1.0.0", 1, "omv-4.5.0"
+    )
+    assert encode_message(msg) == data
+    assert b'"uid":"001a2b3c4d5e6f7081920304"' in data
+
+
+@pytest.mark.parametrize(("gain_db", "temperature_c"), [(6.25, 41.5), (None, None), (-3.0, -12.75)])
+def test_status_round_trip(gain_db: float | None, temperature_c: float | None) -> None:
+    data = encode_status(
+        camera_id=1,
+        seq=2**32 - 1,
+        timestamp_us=5,
+        fps_hz=9.97,
+        frames_sent=1234,
+        frames_dropped=3,
+        exposure_us=8000,
+        gain_db=gain_db,
+        temperature_c=temperature_c,
+    )
+    assert len(data) == HEADER_SIZE + p.STATUS_SIZE
+    msg = decode_one(data)
+    assert msg == StatusMessage(1, 2**32 - 1, 5, 9.97, 1234, 3, 8000, gain_db, temperature_c)
+    assert encode_message(msg) == data
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        lambda: encode_frame(np.zeros((4, 4), np.uint16), camera_id=0, seq=0, timestamp_us=0),
+        lambda: encode_frame(np.zeros((4, 4, 1), np.uint8), camera_id=0, seq=0, timestamp_us=0),
+        lambda: encode_frame(np.zeros((0, 4), np.uint8), camera_id=0, seq=0, timestamp_us=0),
+        lambda: encode_frame(np.zeros((257, 256), np.uint8), camera_id=0, seq=0, timestamp_us=0),
+        lambda: encode_frame(np.zeros((4, 4), np.uint8), camera_id=256, seq=0, timestamp_us=0),
+        lambda: encode_frame(np.zeros((4, 4), np.uint8), camera_id=0, seq=2**32, timestamp_us=0),
+        lambda: encode_frame(np.zeros((4, 4), np.uint8), camera_id=0, seq=-1, timestamp_us=0),
+        lambda: encode_frame(np.zeros((4, 4), np.uint8), camera_id=0, seq=0, timestamp_us=-1),
+        lambda: encode_hello(camera_id=0, seq=0, timestamp_us=0, unique_id="xyz", firmware="f"),
+        lambda: encode_hello(camera_id=0, seq=0, timestamp_us=0, unique_id="", firmware="f"),
+        lambda: encode_hello(camera_id=0, seq=0, timestamp_us=0, unique_id="ab cd", firmware="f"),
+        lambda: encode_status(**{**STATUS_ARGS, "fps_hz": 1000.0}),
+        lambda: encode_status(**{**STATUS_ARGS, "temperature_c": 400.0}),
+        lambda: encode_status(**{**STATUS_ARGS, "gain_db": float("nan")}),
+        lambda: encode_status(**{**STATUS_ARGS, "frames_sent": 2**32}),
+    ],
+)
+def test_encoder_misuse_raises_protocol_error(bad: object) -> None:
+    with pytest.raises(ProtocolError) as info:
+        bad()  # type: ignore[operator]
+    assert isinstance(info.value, CompanionError)
+
+
+def test_largest_frame_fits_and_parser_limits_are_validated() -> None:
+    msg = decode_one(encode_frame(gray(256, 256), camera_id=0, seq=0, timestamp_us=0))
+    assert isinstance(msg, FrameMessage) and msg.image.shape == (256, 256)
+    with pytest.raises(ProtocolError):
+        FrameParser(max_payload_size=MAX_PAYLOAD_SIZE + 1)
+
+
+# --- fuzzing ----------------------------------------------------------------------------------
+
+images = st.tuples(st.integers(1, 12), st.integers(1, 12), st.integers(0, 2**16)).map(
+    lambda t: gray(*t)
+)
+ids = st.integers(0, 255)
+seqs = st.integers(0, 2**32 - 1)
+stamps = st.integers(0, 2**64 - 1)
+frames = st.builds(
+    lambda img, c, s, t: encode_frame(img, camera_id=c, seq=s, timestamp_us=t),
+    images, ids, seqs, stamps,
+)  # fmt: skip
+hellos = st.builds(
+    lambda c, s, t, uid: encode_hello(
+        camera_id=c, seq=s, timestamp_us=t, unique_id=uid, firmware="fw-1"
+    ),
+    ids, seqs, stamps, st.binary(min_size=1, max_size=12),
+)  # fmt: skip
+statuses = st.builds(
+    lambda c, s, t, n: encode_status(
+        camera_id=c, seq=s, timestamp_us=t, fps_hz=10.0, frames_sent=n, frames_dropped=n // 7,
+        exposure_us=n, gain_db=1.5, temperature_c=None,
+    ),
+    ids, seqs, stamps, st.integers(0, 2**32 - 1),
+)  # fmt: skip
+messages = st.one_of(frames, frames, hellos, statuses)
+garbage = st.one_of(
+    st.binary(max_size=64),
+    st.binary(max_size=64).map(lambda b: MAGIC + b),  # false starts
+    st.binary(max_size=40).map(lambda b: MAGIC + b[:28] + b"\xff\xff" + b[28:]),
+    st.just(MAGIC[:1]),
+)
+cuts = st.lists(st.integers(0, 10**6), max_size=12)
+
+
+@FUZZ
+@given(data=st.binary(max_size=4096), chunk_cuts=cuts)
+def test_random_bytes_never_yield_a_message(data: bytes, chunk_cuts: list[int]) -> None:
+    parser = FrameParser()
+    assert feed_chunks(parser, data, chunk_cuts) == []
+    c = parser.counters
+    assert c.frames_ok == 0
+    assert c.dropped_bytes + parser.buffered_bytes == len(data)
+
+
+@FUZZ
+@given(
+    parts=st.lists(st.tuples(garbage, messages), min_size=1, max_size=6),
+    tail=garbage,
+    chunk_cuts=cuts,
+)
+def test_messages_between_garbage_split_anywhere_are_all_recovered_in_order(
+    parts: list[tuple[bytes, bytes]], tail: bytes, chunk_cuts: list[int]
+) -> None:
+    stream = b"".join(g + m for g, m in parts) + tail
+    parser = FrameParser()
+    got = feed_chunks(parser, stream, chunk_cuts)
+    want = [decode_one(m) for _, m in parts]
+    assert len(got) == len(want)
+    assert all(same(a, b) for a, b in zip(got, want, strict=True))
+    c = parser.counters
+    assert c.frames_ok == len(want) and c.corrupted_payloads == 0
+    assert c.dropped_bytes + parser.buffered_bytes == sum(len(g) for g, _ in parts) + len(tail)
+
+
+@FUZZ
+@given(
+    before=garbage,
+    victim=messages,
+    between=garbage,
+    sentinel=messages,
+    bit=st.integers(0, 10**9),
+    chunk_cuts=cuts,
+)
+def test_a_single_bit_flip_rejects_exactly_the_message_it_lands_in(
+    before: bytes, victim: bytes, between: bytes, sentinel: bytes, bit: int, chunk_cuts: list[int]
+) -> None:
+    stream = bytearray(before + victim + between + sentinel)
+    bit %= len(stream) * 8
+    stream[bit // 8] ^= 1 << (bit % 8)
+    at = bit // 8
+    v0, v1 = len(before), len(before) + len(victim)
+    s0 = v1 + len(between)
+    parser = FrameParser()
+    got = feed_chunks(parser, bytes(stream), chunk_cuts)
+    c = parser.counters
+    if v0 <= at < v1:  # in the victim: only the sentinel survives
+        assert len(got) == 1 and same(got[0], decode_one(sentinel))
+        if at - v0 >= 2:  # past the magic: a CRC caught it
+            assert c.corrupted_headers + c.corrupted_payloads >= 1
+        if at - v0 >= HEADER_SIZE:
+            assert c.corrupted_payloads == 1
+    elif at >= s0:  # in the sentinel: only the victim survives
+        assert len(got) == 1 and same(got[0], decode_one(victim))
+    else:  # in garbage: nothing changes
+        assert len(got) == 2
+        assert same(got[0], decode_one(victim)) and same(got[1], decode_one(sentinel))
+    assert c.frames_ok == len(got)
+    accepted = sum(len(encode_message(m)) for m in got)
+    assert accepted + c.dropped_bytes + parser.buffered_bytes == len(stream)
+
+
+def crc_collision(stream: bytes, genuine_until: int, genuine: bytes) -> bool:
+    """True if a header in stream[:genuine_until] other than `genuine`'s own passes its CRC, or
+    `genuine`'s header is followed by a substituted payload with the same CRC (CRC-16's 2^-16
+    residual: the documented limit of the protocol, not a parser bug).
+    """
+    at = stream.find(MAGIC)
+    while 0 <= at < genuine_until:
+        head = stream[at : at + HEADER_SIZE]
+        if len(head) == HEADER_SIZE and crc16_ccitt_false(head[:30]) == int.from_bytes(
+            head[30:], "little"
+        ):
+            if head != genuine[:HEADER_SIZE]:
+                return True
+            window = stream[at + HEADER_SIZE : at + len(genuine)]
+            if crc16_ccitt_false(window) == crc16_ccitt_false(genuine[HEADER_SIZE:]):
+                return True
+        at = stream.find(MAGIC, at + 1)
+    return False
+
+
+@FUZZ
+@given(victim=messages, cut=st.integers(0, 10**6), chunk_cuts=cuts)
+def test_truncated_messages_are_never_emitted(
+    victim: bytes, cut: int, chunk_cuts: list[int]
+) -> None:
+    truncated = victim[: cut % len(victim)]
+    parser = FrameParser()
+    assert feed_chunks(parser, truncated, chunk_cuts) == []
+    assert parser.counters.frames_ok == 0
+
+
+@FUZZ
+@given(victim=messages, follower=messages, cut=st.integers(0, 10**6))
+def test_the_stream_recovers_after_a_truncated_message(
+    victim: bytes, follower: bytes, cut: int
+) -> None:
+    truncated = victim[: cut % len(victim)]
+    # The stream goes on: the follower, then enough filler to end any payload the cut header
+    # may still be waiting for.
+    stream = truncated + follower + bytes(len(victim))
+    assume(not crc_collision(stream, len(truncated), victim))
+    got = FrameParser().feed(stream)
+    assert len(got) == 1 and same(got[0], decode_one(follower))
+
+
+# --- hostile lengths, hidden frames, rules ----------------------------------------------------
+
+
+def test_huge_claimed_length_is_rejected_without_buffering() -> None:
+    parser = FrameParser()
+    bogus = raw_message(width=0xFFFF, height=0xFFFF, payload_len=0xFFFFFFFF)
+    assert parser.feed(bogus + bytes(100_000)) == []
+    assert parser.counters.invalid_messages == 1
+    assert parser.buffered_bytes == 0
+
+
+def test_a_plausible_length_buffers_at_most_one_max_message() -> None:
+    parser = FrameParser()
+    head = encode_frame(gray(256, 256), camera_id=0, seq=0, timestamp_us=0)[:HEADER_SIZE]
+    parser.feed(head)
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        parser.feed(rng.integers(0, 256, 4096, dtype=np.uint8).tobytes())
+        assert parser.buffered_bytes < BUFFER_BOUND
+    assert parser.counters.corrupted_payloads == 1
+    assert parser.counters.frames_ok == 0
+
+
+def test_a_valid_frame_hidden_in_a_corrupted_one_is_found() -> None:
+    inner = encode_frame(gray(4, 5, seed=9), camera_id=1, seq=3, timestamp_us=4)
+    outer = bytearray(
+        encode_frame(
+            np.frombuffer(b"\x00" * 10 + inner + b"\x00" * 10, np.uint8).reshape(1, -1),
+            camera_id=1,
+            seq=2,
+            timestamp_us=3,
+        )
+    )
+    outer[HEADER_SIZE + 2] ^= 0x10  # payload CRC now fails
+    parser = FrameParser()
+    got = parser.feed(bytes(outer))
+    assert len(got) == 1 and same(got[0], decode_one(inner))
+    assert parser.counters.corrupted_payloads == 1
+
+
+@pytest.mark.parametrize(
+    "message",
+    [
+        raw_message(width=4, height=4, payload=bytes(15)),  # GRAY8 length != width*height
+        raw_message(pixel_format=PixelFormat.JPEG, width=4, height=4, payload=bytes(16)),
+        raw_message(msg_type=9, pixel_format=0, payload=b"x"),
+        raw_message(msg_type=MessageType.STATUS, pixel_format=0, payload=bytes(17)),
+        raw_message(msg_type=MessageType.HELLO, pixel_format=0, payload=b"{not json"),
+        raw_message(msg_type=MessageType.HELLO, pixel_format=0, payload=b'{"uid":"zz"}'),
+        raw_message(
+            msg_type=MessageType.HELLO, pixel_format=0, payload=b'{"uid":"ab","fw":1,"proto":1}'
+        ),
+    ],
+)
+def test_crc_valid_messages_breaking_a_rule_are_counted_invalid(message: bytes) -> None:
+    parser = FrameParser()
+    follower = encode_frame(gray(2, 2), camera_id=0, seq=1, timestamp_us=0)
+    got = parser.feed(message + follower)
+    assert len(got) == 1 and same(got[0], decode_one(follower))
+    assert parser.counters.invalid_messages == 1
+    assert parser.counters.dropped_bytes == len(message)
+
+
+def test_other_protocol_versions_are_counted_and_skipped_whole() -> None:
+    v2 = raw_message(version=2, msg_type=7, payload=MAGIC + bytes(40))
+    v3_huge = raw_message(version=3, payload_len=10**9)
+    follower = encode_frame(gray(3, 3), camera_id=0, seq=0, timestamp_us=0)
+    parser = FrameParser()
+    got = parser.feed(v2 + v3_huge + follower)
+    assert len(got) == 1 and same(got[0], decode_one(follower))
+    c = parser.counters
+    assert c.unsupported_version == 2
+    assert c.corrupted_headers == 0 and c.invalid_messages == 0
+    assert c.dropped_bytes == len(v2) + len(v3_huge)
+
+
+# --- sequence numbers -------------------------------------------------------------------------
+
+
+def frame_bytes(camera_id: int, seq: int) -> bytes:
+    return encode_frame(gray(2, 2), camera_id=camera_id, seq=seq, timestamp_us=seq)
+
+
+def test_sequence_gaps_are_counted_per_camera() -> None:
+    parser = FrameParser()
+    stream = [(1, 0), (2, 10), (1, 1), (2, 11), (1, 2), (1, 5), (2, 12), (1, 6)]
+    parser.feed(b"".join(frame_bytes(c, s) for c, s in stream))
+    c = parser.counters
+    assert (c.frames_ok, c.sequence_gaps, c.missed_messages) == (8, 1, 2)
+
+
+def test_sequence_wraps_restarts_and_repeats() -> None:
+    parser = FrameParser()
+    parser.feed(frame_bytes(0, 2**32 - 2) + frame_bytes(0, 2**32 - 1) + frame_bytes(0, 0))
+    assert parser.counters.sequence_gaps == 0  # wrap is not a gap
+    parser.feed(frame_bytes(0, 0))  # repeat: a gap event, but no messages missing
+    assert (parser.counters.sequence_gaps, parser.counters.missed_messages) == (1, 0)
+    hello = encode_hello(camera_id=0, seq=0, timestamp_us=0, unique_id="ab", firmware="f")
+    parser.feed(frame_bytes(0, 50) + hello + frame_bytes(0, 1))  # reboot: HELLO with seq 0
+    assert (parser.counters.sequence_gaps, parser.counters.missed_messages) == (2, 49)
+
+
+def test_reset_drops_buffered_bytes_and_history() -> None:
+    parser = FrameParser()
+    data = frame_bytes(0, 5)
+    parser.feed(data[:-1])
+    assert parser.buffered_bytes == len(data) - 1
+    parser.reset()
+    assert parser.buffered_bytes == 0 and parser.counters.dropped_bytes == len(data) - 1
+    parser.feed(frame_bytes(0, 9))
+    assert parser.counters.sequence_gaps == 0
+    snapshot = parser.counters
+    snapshot.frames_ok = 99  # a copy: the parser's own counters are untouched
+    assert parser.counters.frames_ok == 1
+
+
+# --- cost -------------------------------------------------------------------------------------
+
+
+def test_parsing_is_cheap_on_frames_and_on_garbage() -> None:
+    one = encode_frame(gray(64, 64), camera_id=0, seq=0, timestamp_us=0)
+    stream = one * 500
+    noise = np.random.default_rng(5).integers(0, 256, 4_000_000, dtype=np.uint8).tobytes()
+    parser = FrameParser()
+    start = time.perf_counter()
+    n = 0
+    for i in range(0, len(stream), 1000):  # USB-sized chunks
+        n += len(parser.feed(stream[i : i + 1000]))
+    for i in range(0, len(noise), 65536):
+        parser.feed(noise[i : i + 65536])
+    elapsed = time.perf_counter() - start
+    assert n == 500
+    assert elapsed < 2.0  # typically ~0.05 s: 500 frames (2 MB) plus 4 MB of noise
