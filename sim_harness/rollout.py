@@ -114,6 +114,13 @@ def fly(
         ) as bar,
     ):
         s = vehicle.state
+
+        def record(setpoint: FloatArray) -> None:
+            rows["pos"].append(s.pos_world_enu.copy())
+            rows["vel"].append(s.vel_world_enu.copy())
+            rows["q"].append(vehicle.q_world_body.copy())
+            rows["sp"].append(setpoint)
+
         for step in range(max_steps):
             obs = _observe(
                 s.pos_world_enu,
@@ -124,16 +131,17 @@ def fly(
                 controller,
             )
             setpoint = np.asarray(controller.command(obs), dtype=np.float64)
-            if setpoint.shape != (n, 3) or not np.all(np.isfinite(setpoint)):
+            if setpoint.shape != (n, 3):
                 raise ControllerError(
-                    f"controller {controller.name!r} must return finite setpoints of shape "
-                    f"({n}, 3); got shape {setpoint.shape}"
-                    + ("" if setpoint.shape != (n, 3) else " with non-finite values")
+                    f"controller {controller.name!r} returned setpoints of shape "
+                    f"{setpoint.shape}; expected ({n}, 3)"
                 )
-            rows["pos"].append(s.pos_world_enu.copy())
-            rows["vel"].append(s.vel_world_enu.copy())
-            rows["q"].append(vehicle.q_world_body.copy())
-            rows["sp"].append(setpoint)
+            if not np.all(np.isfinite(setpoint)):
+                raise ControllerError(
+                    f"controller {controller.name!r} returned non-finite setpoints at "
+                    f"t = {obs.own.time_s:.1f} s"
+                )
+            record(setpoint)
             touching: set[tuple[int, int]] = set()
             for _ in range(rates.substeps):
                 vehicle.step(setpoint, rates.physics_dt_s)
@@ -145,10 +153,7 @@ def fly(
             if has_arrived(scenario, s.pos_world_enu):
                 stop_reason = "arrived"
                 break
-        rows["pos"].append(s.pos_world_enu.copy())
-        rows["vel"].append(s.vel_world_enu.copy())
-        rows["q"].append(vehicle.q_world_body.copy())
-        rows["sp"].append(np.full((n, 3), np.nan))
+        record(np.full((n, 3), np.nan))  # final state: nothing is issued after the run
     wall = time.perf_counter() - started
     pos = np.stack(rows["pos"])
     vel = np.stack(rows["vel"])
