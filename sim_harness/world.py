@@ -95,10 +95,9 @@ class World:
     def contacts(self, pos_world_enu: ArrayLike, q_world_body: ArrayLike) -> list[tuple[int, int]]:
         """Agent index pairs (i < j) whose bodies touch at these poses, sorted.
 
-        Moves the bodies to these poses. Callers on a hot path ask `may_touch` first.
+        Moves the bodies to these poses and asks pybullet; callers on a hot path ask the cheap
+        `may_touch` first.
         """
-        if not self.may_touch(pos_world_enu):
-            return []
         self.set_poses(pos_world_enu, q_world_body)
         pb.performCollisionDetection(physicsClientId=self.client_id)
         pairs: set[tuple[int, int]] = set()
