@@ -10,3 +10,7 @@ class ConfigError(CompanionError, ValueError):
 
     The message always names the field and the allowed range.
     """
+
+
+class ModelError(CompanionError):
+    """A model file is missing, corrupted, does not match its recorded hash or its metadata."""

@@ -1,0 +1,142 @@
+"""The exported policy file: TorchScript + metadata + SHA-256, one format for simulation and drone.
+
+A policy is two files side by side:
+
+- `NAME.pt`: a TorchScript module taking the raw stitched images, uint8 tensor (B, 64, 384) in the
+  `companion.camera.layout` order, and returning the body-frame (FLU) velocity, float32 (B, 3) m/s.
+  Standardization is inside. The metadata is embedded as the extra file `metadata.json`, so the
+  `.pt` alone is self-describing and loads with torch only (`torch.jit.load`).
+- `NAME.json`: `{"sha256": <hex digest of NAME.pt>, "metadata": {...}}`, the recorded hash.
+
+`load_model` refuses a file whose hash differs from the expected one (from the config) or from the
+recorded one, and metadata that does not describe this project's rig and frames.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from companion.camera.layout import FACE_NAMES, IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX
+from companion.errors import ModelError
+
+MODEL_FORMAT = "vision-swarm-policy/1"
+METADATA_NAME = "metadata.json"
+OUTPUT_FRAME = "body_flu"
+
+
+def sha256_file(path: str | Path) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def sidecar_path(model_path: str | Path) -> Path:
+    """Where the recorded hash and metadata of `model_path` live (`NAME.pt` -> `NAME.json`)."""
+    return Path(model_path).with_suffix(".json")
+
+
+def base_metadata() -> dict[str, Any]:
+    """The metadata fields every policy file carries about its input and output contract."""
+    return {
+        "format": MODEL_FORMAT,
+        "input": {
+            "dtype": "uint8",
+            "shape": [-1, IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX],
+            "face_order": list(FACE_NAMES),
+            "standardization": "inside",
+        },
+        "output": {"frame": OUTPUT_FRAME, "units": "m/s", "shape": [-1, 3]},
+    }
+
+
+def check_metadata(metadata: dict[str, Any]) -> None:
+    """Raise `ModelError` unless the metadata describes this project's input and output contract."""
+    expected = base_metadata()
+    if metadata.get("format") != MODEL_FORMAT:
+        raise ModelError(f"model format is {metadata.get('format')!r}, expected {MODEL_FORMAT!r}")
+    for section in ("input", "output"):
+        got = metadata.get(section)
+        if not isinstance(got, dict):
+            raise ModelError(f"model metadata has no {section!r} section")
+        for key, value in expected[section].items():
+            if got.get(key) != value:
+                raise ModelError(
+                    f"model metadata {section}.{key} is {got.get(key)!r}, expected {value!r}"
+                )
+
+
+def save_model(module: torch.jit.ScriptModule, metadata: dict[str, Any], path: str | Path) -> str:
+    """Write `module` with `metadata` embedded, then the sidecar with its hash; returns the hash."""
+    check_metadata(metadata)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(metadata, indent=2, sort_keys=True)
+    torch.jit.save(module, str(path), _extra_files={METADATA_NAME: text})
+    digest = sha256_file(path)
+    sidecar = {"sha256": digest, "metadata": metadata}
+    sidecar_path(path).write_text(json.dumps(sidecar, indent=2, sort_keys=True) + "\n")
+    return digest
+
+
+@dataclass(frozen=True)
+class LoadedModel:
+    """A verified policy: TorchScript module, metadata and the SHA-256 it was loaded with."""
+
+    module: torch.jit.ScriptModule
+    metadata: dict[str, Any]
+    sha256: str
+    path: Path
+
+
+def load_model(
+    path: str | Path, expected_sha256: str | None = None, map_location: str = "cpu"
+) -> LoadedModel:
+    """Load and verify a policy file.
+
+    The hash is computed over the exact bytes that are then deserialized. It must equal
+    `expected_sha256` when given, and the sidecar's recorded hash when the sidecar exists.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ModelError(f"cannot read model file {path}: {exc.strerror}") from exc
+    digest = hashlib.sha256(data).hexdigest()
+    if expected_sha256 is not None and digest != expected_sha256.lower():
+        raise ModelError(
+            f"model file {path} has SHA-256 {digest}, but {expected_sha256} was expected: refused"
+        )
+    sidecar = sidecar_path(path)
+    if sidecar.exists():
+        try:
+            recorded = json.loads(sidecar.read_text())["sha256"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ModelError(f"cannot read the recorded hash in {sidecar}: {exc}") from exc
+        if digest != recorded:
+            raise ModelError(
+                f"model file {path} has SHA-256 {digest}, but {sidecar.name} records {recorded}: "
+                "refused"
+            )
+    elif expected_sha256 is None:
+        raise ModelError(f"model file {path} has no recorded hash ({sidecar.name} is missing)")
+    extra = {METADATA_NAME: ""}
+    try:
+        module = torch.jit.load(  # type: ignore[no-untyped-call]
+            io.BytesIO(data), map_location=map_location, _extra_files=extra
+        )
+    except RuntimeError as exc:
+        raise ModelError(f"model file {path} is not a TorchScript module: {exc}") from exc
+    try:
+        metadata = json.loads(extra[METADATA_NAME])
+    except ValueError as exc:
+        raise ModelError(f"model file {path} carries no readable {METADATA_NAME}") from exc
+    if not isinstance(metadata, dict):
+        raise ModelError(f"model file {path}: {METADATA_NAME} is not an object")
+    check_metadata(metadata)
+    return LoadedModel(module=module, metadata=metadata, sha256=digest, path=path)
