@@ -1,9 +1,11 @@
 """Rendering what each drone's six cameras see, behind a small interface.
 
 `Renderer.render(world, pos, q, agents)` returns one 64x384 uint8 grayscale strip per requested
-agent, laid out as `companion.camera.layout` defines. `PyBulletRenderer` uses pybullet's CPU
-TinyRenderer, headless, without shadows. The observing drone's own body is moved out of the scene
-while its views are rendered (the paper's cameras see past their own propellers).
+agent, laid out as `companion.camera.layout` defines. `PyBulletRenderer` draws the drones with
+pybullet's CPU TinyRenderer (headless, no shadows) and composites them over the analytic ground and
+sky of `sim_harness.scene` using TinyRenderer's depth buffer. The observing drone's own body is
+moved out of the scene while its views are rendered (the paper's cameras see past their own
+propellers).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 from companion.camera.layout import FACE_SIZE_PX, FACES, FOV_DEG, stitch
 from companion.frames import quat_to_rotmat
 from sim_harness.pybullet_import import pb
+from sim_harness.scene import Environment, SceneSpec
 from sim_harness.world import World
 
 _PARKED = (0.0, 0.0, -1000.0)  # where the observer's own body waits during its renders
@@ -51,9 +54,12 @@ def camera_poses(
 class PyBulletRenderer:
     """pybullet TinyRenderer (CPU, headless), 64x64 per face, grayscale."""
 
-    def __init__(self, near_m: float = 0.05, far_m: float = 120.0) -> None:
+    def __init__(
+        self, near_m: float = 0.05, far_m: float = 120.0, scene: SceneSpec | None = None
+    ) -> None:
         self.near_m = near_m
         self.far_m = far_m
+        self.environment = Environment(scene or SceneSpec())
         self._projection = pb.computeProjectionMatrixFOV(FOV_DEG, 1.0, near_m, far_m)
 
     def _render_face(
@@ -62,12 +68,13 @@ class PyBulletRenderer:
         eye: NDArray[np.float64],
         axis: NDArray[np.float64],
         up: NDArray[np.float64],
-    ) -> NDArray[np.uint8]:
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """Drones' gray levels and where a drone was drawn, each (64, 64)."""
         cid = world.client_id
         view = pb.computeViewMatrix(
             eye.tolist(), (eye + axis).tolist(), up.tolist(), physicsClientId=cid
         )
-        _, _, rgba, _, _ = pb.getCameraImage(
+        _, _, rgba, depth, _ = pb.getCameraImage(
             FACE_SIZE_PX,
             FACE_SIZE_PX,
             view,
@@ -78,7 +85,8 @@ class PyBulletRenderer:
             physicsClientId=cid,
         )
         rgb = np.asarray(rgba, dtype=np.float64).reshape(FACE_SIZE_PX, FACE_SIZE_PX, 4)[..., :3]
-        return np.clip(np.rint(rgb @ _GRAY_WEIGHTS), 0, 255).astype(np.uint8)
+        hit = np.asarray(depth).reshape(FACE_SIZE_PX, FACE_SIZE_PX) < 1.0
+        return rgb @ _GRAY_WEIGHTS, hit
 
     def render(
         self,
@@ -92,19 +100,20 @@ class PyBulletRenderer:
         chosen = list(range(world.n_agents)) if agents is None else list(agents)
         world.set_poses(pos, q)
         eyes, axes, ups = camera_poses(pos, q)
-        out = np.empty((len(chosen), 6, FACE_SIZE_PX, FACE_SIZE_PX), dtype=np.uint8)
+        out = self.environment.shade(eyes[chosen], quat_to_rotmat(q[chosen]))
         cid = world.client_id
         for k, agent in enumerate(chosen):
             body = world.body_ids[agent]
             pb.resetBasePositionAndOrientation(body, _PARKED, (0, 0, 0, 1), physicsClientId=cid)
             try:
                 for f in range(6):
-                    out[k, f] = self._render_face(
+                    gray, hit = self._render_face(
                         world, eyes[agent, f], axes[agent, f], ups[agent, f]
                     )
+                    out[k, f][hit] = gray[hit]
             finally:
                 w, x, y, z = q[agent]
                 pb.resetBasePositionAndOrientation(
                     body, pos[agent].tolist(), (x, y, z, w), physicsClientId=cid
                 )
-        return stitch(out)
+        return stitch(np.clip(np.rint(out), 0, 255).astype(np.uint8))

@@ -1,4 +1,4 @@
-"""The pybullet world: a headless DIRECT client with a ground plane and N quadrotor bodies.
+"""The pybullet world: a headless DIRECT client holding N quadrotor bodies.
 
 Every pybullet call names its `physicsClientId`, so several worlds run side by side in one process.
 The bodies are placed from the vehicle model's state each physics step (`set_poses`); the world
@@ -17,6 +17,7 @@ from companion.validation import require_int_range
 from sim_harness.errors import ConfigError, SimError
 from sim_harness.pybullet_import import pb
 from sim_harness.quad_body import QuadGeometry, create_quadrotor
+from sim_harness.scene import load_texture
 
 
 @dataclass(frozen=True)
@@ -60,10 +61,9 @@ class World:
             raise SimError("could not start a pybullet DIRECT client")
         cid = {"physicsClientId": self.client_id}
         pb.setGravity(0.0, 0.0, -9.81, **cid)
-        plane = pb.createCollisionShape(pb.GEOM_PLANE, **cid)
-        self.ground_id = int(pb.createMultiBody(0.0, plane, **cid))
+        palette = load_texture(self.client_id, self.geometry.palette_rgb_u8())
         self.body_ids: list[int] = [
-            create_quadrotor(self.client_id, self.geometry, (3.0 * i, 0.0, 1.0))
+            create_quadrotor(self.client_id, self.geometry, palette, (3.0 * i, 0.0, 1.0))
             for i in range(n_agents)
         ]
         self._agent_of_body = {body: i for i, body in enumerate(self.body_ids)}

@@ -62,9 +62,9 @@ def test_turning_the_observer_moves_the_drone_to_the_matching_face(world, yaw_de
 
 
 def horizon_row(tile: np.ndarray) -> float:
-    """First row (from the top) where the textured ground begins: the sky is uniform."""
-    textured = tile.std(axis=1) > 5
-    return float(np.argmax(textured))
+    """First row (from the top) that is mostly ground: the sky is brighter than 200 everywhere."""
+    ground = np.median(tile, axis=1) < 195
+    return float(np.argmax(ground))
 
 
 def test_pitching_moves_the_horizon_the_right_way(world) -> None:
@@ -106,18 +106,38 @@ def test_own_body_is_not_in_its_own_views() -> None:
         seen = renderer.render(world, pos, q)[0]
         world.set_poses(pos, q)
 
-        def raw_view():
-            return stitch(
-                np.stack(
-                    [
-                        renderer._render_face(world, eyes[0, f], axes[0, f], ups[0, f])
-                        for f in range(6)
-                    ]
-                )
+        def drone_pixels():
+            return sum(
+                int(renderer._render_face(world, eyes[0, f], axes[0, f], ups[0, f])[1].sum())
+                for f in range(6)
             )
 
-        with_body = raw_view()
+        assert drone_pixels() > 50  # the body would be visible
         world.set_poses(FAR_AWAY[None, :], q)
-        empty = raw_view()
-    assert np.count_nonzero(with_body != empty) > 50  # the body would be visible
-    np.testing.assert_array_equal(seen, empty)
+        assert drone_pixels() == 0
+    # What the drone sees is the bare environment.
+    empty = renderer.environment.shade(eyes, np.eye(3)[None])
+    np.testing.assert_array_equal(seen, stitch(np.rint(empty).astype(np.uint8))[0])
+
+
+def test_drone_below_stands_out_against_the_ground(world) -> None:
+    # Seen from above, the drone is against the textured ground: it must still be found, and be
+    # clearly darker than the ground around it.
+    face, row, col = where_is_the_other_drone(world, OBSERVER + [0.0, 0.0, -3.0], [1, 0, 0, 0])
+    assert face == "down"
+    assert abs(row - 31.5) < 3 and abs(col - 31.5) < 3
+    renderer = PyBulletRenderer()
+    q = np.array([[1.0, 0, 0, 0]] * 2)
+    down = split(renderer.render(world, np.stack([OBSERVER, OBSERVER + [0, 0, -3.0]]), q, [0]))
+    tile = down[0, 5].astype(float)
+    assert tile[28:36, 28:36].min() < tile.mean() - 50
+
+
+def test_sky_is_brighter_than_the_ground(world) -> None:
+    image = PyBulletRenderer().render(
+        world, np.stack([OBSERVER, FAR_AWAY]), np.array([[1.0, 0, 0, 0]] * 2), [0]
+    )
+    tiles = split(image)[0]
+    assert tiles[4].min() >= 195  # up: sky only
+    assert 100 <= tiles[5].mean() <= 210  # down: ground only
+    assert tiles[4].mean() > tiles[5].mean() + 30

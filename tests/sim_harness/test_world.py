@@ -5,7 +5,7 @@ import pybullet as pb
 import pytest
 
 from companion.errors import ConfigError
-from sim_harness.quad_body import QuadGeometry
+from sim_harness.quad_body import QuadGeometry, quad_mesh
 from sim_harness.world import SimRates, World
 
 IDENTITY = [1.0, 0.0, 0.0, 0.0]
@@ -20,8 +20,8 @@ def test_two_worlds_run_side_by_side() -> None:
         pos_b, _ = pb.getBasePositionAndOrientation(b.body_ids[1], physicsClientId=b.client_id)
         assert pos_a == pytest.approx((5, 0, 2))
         assert pos_b == pytest.approx((1, 0, 7))
-        assert pb.getNumBodies(physicsClientId=a.client_id) == 3  # ground + 2 drones
-        assert pb.getNumBodies(physicsClientId=b.client_id) == 4
+        assert pb.getNumBodies(physicsClientId=a.client_id) == 2  # one body per drone
+        assert pb.getNumBodies(physicsClientId=b.client_id) == 3
 
 
 def test_drone_has_realistic_size_mass_and_parts() -> None:
@@ -30,23 +30,35 @@ def test_drone_has_realistic_size_mass_and_parts() -> None:
     assert 1.0 <= geometry.mass_kg <= 2.0
     with World(1) as world:
         body = world.body_ids[0]
-        assert pb.getNumJoints(body, physicsClientId=world.client_id) == 8  # 4 arms + 4 rotors
+        cid = world.client_id
+        # Collision geometry: body box + 4 arms + 4 rotors in one compound shape.
+        assert len(pb.getCollisionShapeData(body, -1, physicsClientId=cid)) == 9
         world.set_poses([[0, 0, 3]], [IDENTITY])
-        low, high = pb.getAABB(body, -1, physicsClientId=world.client_id)
-        lows, highs = [low], [high]
-        for link in range(8):
-            lo, hi = pb.getAABB(body, link, physicsClientId=world.client_id)
-            lows.append(lo)
-            highs.append(hi)
-        extent = np.max(highs, axis=0) - np.min(lows, axis=0)
-        assert extent[0] == pytest.approx(extent[1])
-        # X frame: rotors on the diagonals, so the axis-aligned box is 2 (l cos 45 + r) wide.
+        low, high = pb.getAABB(body, -1, physicsClientId=cid)
+        extent = np.subtract(high, low)
+        assert extent[0] == pytest.approx(extent[1], abs=1e-3)
+        # X frame: rotors on the diagonals, so the axis-aligned box is 2 (l cos 45 + r) wide
+        # (pybullet pads AABBs by a small collision margin).
         reach = geometry.arm_length_m * np.sqrt(0.5) + geometry.rotor_radius_m
-        assert extent[0] == pytest.approx(2 * reach, abs=1e-3)
-        total = sum(
-            pb.getDynamicsInfo(body, k, physicsClientId=world.client_id)[0] for k in range(-1, 8)
+        assert extent[0] == pytest.approx(2 * reach, abs=0.03)
+        assert pb.getDynamicsInfo(body, -1, physicsClientId=cid)[0] == pytest.approx(
+            geometry.mass_kg
         )
-        assert total == pytest.approx(geometry.mass_kg)
+
+
+def test_drone_mesh_shows_every_part_in_its_own_dark_colour() -> None:
+    geometry = QuadGeometry()
+    mesh = quad_mesh(geometry)
+    vertices = np.array(mesh.vertices)
+    # Same footprint as the collision geometry: rotor tips at the arm ends on the diagonals.
+    reach = geometry.arm_length_m * np.sqrt(0.5) + geometry.rotor_radius_m
+    assert np.abs(vertices[:, 0]).max() == pytest.approx(reach, abs=0.01)
+    assert len(mesh.indices) % 3 == 0 and max(mesh.indices) < len(vertices)
+    palette = geometry.palette_rgb_u8()
+    columns = sorted({int(u * palette.shape[1]) for u, _ in mesh.uvs})
+    gray = palette[0, columns] @ np.array([0.299, 0.587, 0.114])
+    assert len(columns) == 3  # body, arms, rotors
+    assert gray.max() < 90  # darker than the ground (>= 100) and the sky (>= 200)
 
 
 def test_contacts_are_detected_and_reported_as_agent_pairs() -> None:
