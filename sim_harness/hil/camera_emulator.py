@@ -1,0 +1,415 @@
+"""Six emulated OpenMV cameras on real ptys, speaking camera protocol v1 byte for byte.
+
+Each camera is a pty pair (`os.openpty`); the host side is reached through a stable symlink,
+`<directory>/openmv-<face>` (like a udev name), to the pty slave. Messages are built with
+`companion.camera.protocol`'s encoders, the ones the firmware's encoder is tested against.
+
+Behaviour copied from firmware_cfg/openmv/main.py:
+
+- A camera sends only while the host has the port open and configured. A pty has no DTR line, so
+  "DTR high" is emulated as: the slave has been open (the master does not report POLLHUP) for
+  `settle_s`, long enough for the host's open-time input flush, and is in raw mode (ICANON cleared,
+  as pyserial's open leaves it). On every such connection it sends a HELLO at once, then a HELLO
+  every `hello_period_s`, a STATUS every `status_period_s` and FRAMEs at `rate_hz`.
+- One sequence counter per camera numbers every message; `replug` is a camera reboot (seq and
+  capture clock restart at 0), reopening the port is not.
+- Writes are non-blocking: a message is dropped (and counted, and its seq skipped) while the
+  previous one is still waiting for the host to read, like a USB VCP whose host stopped polling.
+
+Runs in one background thread (`start`/`close`, or `with CameraEmulator(...)`), so it serves a
+pytest test, an asyncio daemon in the same process, or a daemon in another process. The control
+methods (`stall`, `unplug`, `replug`, `inject`, `corrupt_frames`) are thread-safe.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import termios
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.camera.config import CameraRigConfig, FaceCameraConfig
+from companion.camera.layout import FACE_NAMES, FACE_SIZE_PX, N_FACES, split
+from companion.camera.protocol import HEADER_SIZE, encode_frame, encode_hello, encode_status
+from sim_harness.errors import SimError
+
+logger = logging.getLogger(__name__)
+
+TileSource = Callable[[float], NDArray[np.uint8] | Sequence[NDArray[np.uint8]]]
+"""Seconds since the emulator started -> six (64, 64) uint8 tiles in FACE_NAMES order."""
+
+FIRMWARE = "openmv-emulator-1.0.0"
+PLATFORM = "sim"
+POLL_S = 0.01  # connection polling period (the firmware polls DTR every 20 ms)
+
+
+def default_uid(face: str) -> str:
+    """A stable 12-byte board unique id (24 hex digits) per face, like the STM32F7's."""
+    return f"e0c0{FACE_NAMES.index(face):04x}0d5136303638383{FACE_NAMES.index(face)}"
+
+
+def bar_pattern(t_s: float) -> NDArray[np.uint8]:
+    """Default source: per face a distinct level plus a bar moving one column per 0.1 s."""
+    tiles = np.empty((N_FACES, FACE_SIZE_PX, FACE_SIZE_PX), dtype=np.uint8)
+    for index in range(N_FACES):
+        tiles[index] = 30 + 35 * index
+    tiles[:, :, int(t_s * 10.0) % FACE_SIZE_PX] = 255
+    return tiles
+
+
+@dataclass
+class CameraStats:
+    """What one emulated camera did (a copy)."""
+
+    frames_sent: int = 0  # FRAMEs fully queued to the host
+    frames_dropped: int = 0  # FRAMEs dropped because the host was not reading
+    hellos_sent: int = 0
+    connections: int = 0  # times the host opened and configured the port
+    host_connected: bool = False
+    plugged: bool = True
+    stalled: bool = False
+    seq: int = 0  # next sequence number
+
+
+@dataclass
+class _Camera:
+    face: str
+    uid: str
+    header_id: int
+    path: Path
+    master_fd: int | None = None
+    poller: Any = None  # select.poll object on master_fd
+    boot_s: float = 0.0
+    open_since_s: float | None = None  # host port open and raw since (None: not)
+    announced: bool = False
+    next_hello_s: float = 0.0
+    next_status_s: float = 0.0
+    pending: bytearray = field(default_factory=bytearray)
+    corrupt_left: int = 0
+    fps_frames: int = 0
+    fps_since_s: float = 0.0
+    stats: CameraStats = field(default_factory=CameraStats)
+
+
+class CameraEmulator:
+    """Six cameras (FACE_NAMES) on ptys with symlinks `<directory>/<prefix><face>`.
+
+    `source`: a `TileSource` (called once per frame tick for all six cameras), or a recorded array
+    (N, 64, 384) uint8 of stitched frames played in a loop, one per tick. `clock`: monotonic
+    seconds, used for the schedule and the cameras' capture timestamps.
+    """
+
+    def __init__(
+        self,
+        directory: str | os.PathLike[str],
+        *,
+        source: TileSource | NDArray[np.uint8] = bar_pattern,
+        rate_hz: float = 10.0,
+        hello_period_s: float = 2.0,
+        status_period_s: float = 1.0,
+        settle_s: float = 0.05,
+        uids: Mapping[str, str] | None = None,
+        prefix: str = "openmv-",
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not rate_hz > 0 or not hello_period_s > 0 or not status_period_s > 0:
+            raise SimError("camera emulator: rate_hz and periods must be > 0")
+        self._directory = Path(directory)
+        self._source = _as_source(source)
+        self._period_s = 1.0 / rate_hz
+        self._hello_period_s = hello_period_s
+        self._status_period_s = status_period_s
+        self._settle_s = settle_s
+        self._clock = clock
+        uids = dict(uids or {})
+        self._cameras = {
+            face: _Camera(
+                face=face,
+                uid=uids.get(face, default_uid(face)).lower(),
+                header_id=index,
+                path=self._directory / f"{prefix}{face}",
+            )
+            for index, face in enumerate(FACE_NAMES)
+        }
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._start_s = 0.0
+        self._next_frame_s = 0.0
+        self._tick = 0
+
+    def start(self) -> CameraEmulator:
+        """Create the six ptys and symlinks and start streaming in a daemon thread."""
+        if self._thread is not None:
+            raise SimError("camera emulator: already started")
+        self._directory.mkdir(parents=True, exist_ok=True)
+        now_s = self._clock()
+        self._start_s = self._next_frame_s = now_s
+        with self._lock:
+            for cam in self._cameras.values():
+                self._plug(cam, now_s)
+        self._thread = threading.Thread(target=self._run, name="camera-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop the thread, close every pty master and remove the symlinks."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        with self._lock:
+            for cam in self._cameras.values():
+                self._unplug(cam)
+
+    def __enter__(self) -> CameraEmulator:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def device_path(self, face: str) -> Path:
+        """The stable symlink the host opens for `face`."""
+        return self._camera(face).path
+
+    def uid(self, face: str) -> str:
+        """The board unique id `face`'s camera announces in HELLO."""
+        return self._camera(face).uid
+
+    def stats(self, face: str) -> CameraStats:
+        """A copy of one camera's counters and state."""
+        with self._lock:
+            return CameraStats(**vars(self._camera(face).stats))
+
+    def faces_config(self) -> dict[str, dict[str, str]]:
+        """`[cameras.faces]` TOML tables that match this emulator (device and camera_id)."""
+        return {
+            face: {"device": str(cam.path), "camera_id": cam.uid}
+            for face, cam in self._cameras.items()
+        }
+
+    def rig_config(self, **options: Any) -> CameraRigConfig:
+        """A `CameraRigConfig` for these cameras; `options` set the other fields."""
+        faces = {f: FaceCameraConfig(**d) for f, d in self.faces_config().items()}
+        return CameraRigConfig(faces=faces, **options)
+
+    def stall(self, face: str) -> None:
+        """The camera's script hangs: nothing more is sent (the port stays open)."""
+        with self._lock:
+            self._camera(face).stats.stalled = True
+
+    def resume(self, face: str) -> None:
+        """Undo `stall`."""
+        with self._lock:
+            self._camera(face).stats.stalled = False
+
+    def unplug(self, face: str) -> None:
+        """Cable out: close the pty master (the host reads EOF) and remove the symlink."""
+        with self._lock:
+            self._unplug(self._camera(face))
+
+    def replug(self, face: str) -> None:
+        """Cable in: a new pty, the symlink re-pointed to it; the camera boots (seq 0)."""
+        with self._lock:
+            cam = self._camera(face)
+            self._unplug(cam)
+            self._plug(cam, self._clock())
+
+    def inject(self, face: str, data: bytes) -> bool:
+        """Queue raw bytes (garbage) between messages; False if the host is not connected."""
+        with self._lock:
+            cam = self._camera(face)
+            if cam.master_fd is None or not cam.announced:
+                return False
+            cam.pending += data
+            return True
+
+    def corrupt_frames(self, face: str, count: int = 1) -> None:
+        """Flip one payload byte in each of the next `count` FRAMEs (their payload CRC fails)."""
+        with self._lock:
+            self._camera(face).corrupt_left += count
+
+    def _camera(self, face: str) -> _Camera:
+        try:
+            return self._cameras[face]
+        except KeyError:
+            raise SimError(f"camera emulator: unknown face {face!r}") from None
+
+    def _plug(self, cam: _Camera, now_s: float) -> None:
+        master_fd, slave_fd = os.openpty()
+        slave_name = os.ttyname(slave_fd)
+        os.close(slave_fd)  # only the host holds the slave: its open/close become visible
+        os.set_blocking(master_fd, False)
+        poller = select.poll()
+        poller.register(master_fd, select.POLLIN)
+        tmp = cam.path.with_name(cam.path.name + ".tmp")
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(slave_name)
+        os.replace(tmp, cam.path)  # atomic re-point, like udev
+        cam.master_fd, cam.poller, cam.boot_s = master_fd, poller, now_s
+        cam.open_since_s, cam.announced = None, False
+        cam.pending.clear()
+        cam.stats.plugged, cam.stats.host_connected, cam.stats.seq = True, False, 0
+
+    def _unplug(self, cam: _Camera) -> None:
+        if cam.master_fd is not None:
+            os.close(cam.master_fd)
+        cam.master_fd = cam.poller = None
+        cam.open_since_s, cam.announced = None, False
+        cam.pending.clear()
+        cam.stats.plugged = cam.stats.host_connected = False
+        cam.path.unlink(missing_ok=True)
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                now_s = self._clock()
+                with self._lock:
+                    for cam in self._cameras.values():
+                        self._service(cam, now_s)
+                    if now_s >= self._next_frame_s:
+                        self._send_frames(now_s)
+                    busy = any(cam.pending for cam in self._cameras.values())
+                    for cam in self._cameras.values():
+                        self._flush(cam)
+                    wait_s = min(self._next_frame_s - self._clock(), 0.002 if busy else POLL_S)
+                self._stop.wait(max(wait_s, 0.0005))
+        except Exception:
+            logger.exception("camera emulator thread failed")
+            raise
+
+    def _host_state(self, cam: _Camera) -> tuple[bool, bool]:
+        """(slave open, slave in raw mode), draining anything the host wrote."""
+        assert cam.master_fd is not None and cam.poller is not None
+        events = cam.poller.poll(0)
+        if events and events[0][1] & select.POLLHUP:
+            return False, False
+        try:
+            while os.read(cam.master_fd, 4096):
+                pass
+        except (BlockingIOError, OSError):
+            pass
+        raw = not termios.tcgetattr(cam.master_fd)[3] & termios.ICANON
+        return True, raw
+
+    def _service(self, cam: _Camera, now_s: float) -> None:
+        if cam.master_fd is None:
+            return
+        is_open, raw = self._host_state(cam)
+        if not is_open:
+            if cam.open_since_s is not None:
+                logger.debug("camera %s: host closed the port", cam.face)
+            cam.open_since_s, cam.announced = None, False
+            cam.stats.host_connected = False
+            cam.pending.clear()
+            return
+        if cam.open_since_s is None:
+            cam.open_since_s = now_s
+        if not raw or now_s - cam.open_since_s < self._settle_s:
+            return
+        if not cam.announced:
+            cam.announced = True
+            cam.stats.host_connected = True
+            cam.stats.connections += 1
+            cam.next_hello_s = now_s
+            cam.next_status_s = now_s + self._status_period_s
+            cam.fps_frames, cam.fps_since_s = 0, now_s
+        if cam.stats.stalled:
+            return
+        if now_s >= cam.next_hello_s:
+            cam.next_hello_s = now_s + self._hello_period_s
+            hello = encode_hello(camera_id=cam.header_id, seq=self._next_seq(cam),
+                                 timestamp_us=self._camera_us(cam, now_s), unique_id=cam.uid,
+                                 firmware=FIRMWARE, platform=PLATFORM)  # fmt: skip
+            if self._queue(cam, hello):
+                cam.stats.hellos_sent += 1
+        if now_s >= cam.next_status_s:
+            cam.next_status_s = now_s + self._status_period_s
+            elapsed_s = max(now_s - cam.fps_since_s, 1e-6)
+            status = encode_status(
+                camera_id=cam.header_id, seq=self._next_seq(cam),
+                timestamp_us=self._camera_us(cam, now_s),
+                fps_hz=min(cam.fps_frames / elapsed_s, 655.0),
+                frames_sent=cam.stats.frames_sent & 0xFFFFFFFF,
+                frames_dropped=cam.stats.frames_dropped & 0xFFFFFFFF,
+                exposure_us=10000, gain_db=0.0, temperature_c=35.0,
+            )  # fmt: skip
+            cam.fps_frames, cam.fps_since_s = 0, now_s
+            self._queue(cam, status)
+
+    def _send_frames(self, now_s: float) -> None:
+        missed = int((now_s - self._next_frame_s) / self._period_s)
+        self._next_frame_s += (missed + 1) * self._period_s
+        tiles = np.asarray(self._source(now_s - self._start_s, self._tick))
+        self._tick += 1
+        if tiles.shape != (N_FACES, FACE_SIZE_PX, FACE_SIZE_PX) or tiles.dtype != np.uint8:
+            raise SimError(f"camera emulator: source gave {tiles.dtype} {tiles.shape}, expected "
+                           f"uint8 ({N_FACES}, {FACE_SIZE_PX}, {FACE_SIZE_PX})")  # fmt: skip
+        for index, cam in enumerate(self._cameras.values()):
+            if cam.master_fd is None or not cam.announced or cam.stats.stalled:
+                continue
+            frame = bytearray(encode_frame(tiles[index], camera_id=cam.header_id,
+                                           seq=self._next_seq(cam),
+                                           timestamp_us=self._camera_us(cam, now_s)))  # fmt: skip
+            if cam.corrupt_left > 0:
+                cam.corrupt_left -= 1
+                frame[HEADER_SIZE + len(frame) // 2 - HEADER_SIZE // 2] ^= 0x5A
+            if self._queue(cam, bytes(frame)):
+                cam.stats.frames_sent += 1
+                cam.fps_frames += 1
+            else:
+                cam.stats.frames_dropped += 1
+
+    @staticmethod
+    def _next_seq(cam: _Camera) -> int:
+        seq = cam.stats.seq
+        cam.stats.seq = (seq + 1) & 0xFFFFFFFF
+        return seq
+
+    @staticmethod
+    def _camera_us(cam: _Camera, now_s: float) -> int:
+        return max(0, int((now_s - cam.boot_s) * 1e6))
+
+    @classmethod
+    def _queue(cls, cam: _Camera, message: bytes) -> bool:
+        """Queue a whole message, or drop it (False) while the previous one is still pending."""
+        cls._flush(cam)
+        if cam.pending:
+            return False
+        cam.pending += message
+        return True
+
+    @staticmethod
+    def _flush(cam: _Camera) -> None:
+        if cam.master_fd is None or not cam.pending:
+            return
+        try:
+            written = os.write(cam.master_fd, cam.pending)
+        except BlockingIOError:
+            return
+        except OSError:  # host side gone mid-write: drop, the next poll sees it
+            cam.pending.clear()
+            return
+        del cam.pending[:written]
+
+
+def _as_source(source: TileSource | NDArray[np.uint8]) -> Callable[[float, int], NDArray[np.uint8]]:
+    """Uniform source: (seconds since start, tick index) -> (6, 64, 64) uint8."""
+    if isinstance(source, np.ndarray):
+        recorded = np.asarray(source)
+        if recorded.ndim != 3 or recorded.shape[0] == 0 or recorded.dtype != np.uint8:
+            raise SimError(f"camera emulator: recording must be (N, 64, 384) uint8, "
+                           f"got {recorded.dtype} {recorded.shape}")  # fmt: skip
+        tiles = split(recorded)  # (N, 6, 64, 64)
+        return lambda _t_s, tick: tiles[tick % len(tiles)]
+    fn = source
+    return lambda t_s, _tick: np.asarray(fn(t_s), dtype=np.uint8)
