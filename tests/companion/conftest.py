@@ -1,0 +1,104 @@
+"""Shared fixtures for companion tests: tiny real TorchScript policies saved with `save_model`.
+
+Every policy takes the stitched images, uint8 (B, 64, 384), and returns a body-FLU velocity
+(B, 3) like a trained one; they differ in what they compute:
+
+- "constant": always `value`;
+- "brightness": (mean/255, -mean/255, 0): proves the image really reaches the model;
+- "nan": NaN everywhere;
+- "wide": (B, 4), a wrong output shape;
+- "raise": raises inside TorchScript when pixel (0, 0, 0) is 255, else returns zeros;
+- "spin": busy-loops pixel(0, 0, 0) * `SPIN_ITERS_PER_UNIT` times (about 7 us each, the GIL
+  released), then returns (0.5, 0, 0): a slow model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import pytest
+import torch
+from torch import Tensor, nn
+
+from companion.model_file import base_metadata, save_model
+
+SPIN_ITERS_PER_UNIT = 20_000
+
+
+class _Constant(nn.Module):
+    def __init__(self, value: Sequence[float]) -> None:
+        super().__init__()
+        self.register_buffer("value", torch.tensor(list(value), dtype=torch.float32))
+
+    def forward(self, images: Tensor) -> Tensor:
+        return self.value.expand(images.shape[0], 3).clone()
+
+
+class _Brightness(nn.Module):
+    def forward(self, images: Tensor) -> Tensor:
+        mean = images.to(torch.float32).mean(dim=(1, 2)) / 255.0
+        return torch.stack([mean, -mean, torch.zeros_like(mean)], dim=1)
+
+
+class _NaN(nn.Module):
+    def forward(self, images: Tensor) -> Tensor:
+        return torch.full((images.shape[0], 3), float("nan"))
+
+
+class _Wide(nn.Module):
+    def forward(self, images: Tensor) -> Tensor:
+        return torch.zeros(images.shape[0], 4)
+
+
+class _Raise(nn.Module):
+    def forward(self, images: Tensor) -> Tensor:
+        if int(images[0, 0, 0]) == 255:
+            raise RuntimeError("synthetic model failure")
+        return torch.zeros(images.shape[0], 3)
+
+
+class _Spin(nn.Module):
+    def __init__(self, iters_per_unit: int) -> None:
+        super().__init__()
+        self.iters_per_unit = iters_per_unit
+
+    def forward(self, images: Tensor) -> Tensor:
+        n = int(images[0, 0, 0]) * self.iters_per_unit
+        acc = torch.zeros(images.shape[0], 3)
+        for _ in range(n):
+            acc = acc + 0.0
+        return acc + torch.tensor([0.5, 0.0, 0.0])
+
+
+def build_module(kind: str, value: Sequence[float] = (1.0, 0.0, 0.0)) -> torch.jit.ScriptModule:
+    modules: dict[str, Callable[[], nn.Module]] = {
+        "constant": lambda: _Constant(value),
+        "brightness": _Brightness,
+        "nan": _NaN,
+        "wide": _Wide,
+        "raise": _Raise,
+        "spin": lambda: _Spin(SPIN_ITERS_PER_UNIT),
+    }
+    scripted: torch.jit.ScriptModule = torch.jit.script(modules[kind]().eval())
+    return scripted
+
+
+PolicyFactory = Callable[..., Path]
+
+
+@pytest.fixture
+def make_policy_file(tmp_path: Path) -> PolicyFactory:
+    """`make_policy_file(kind, value=(1, 0, 0), name=kind) -> Path` of a saved NAME.pt.
+
+    The sidecar NAME.json (hash + metadata) is written next to it by `save_model`.
+    """
+
+    def make(kind: str, value: Sequence[float] = (1.0, 0.0, 0.0), name: str | None = None) -> Path:
+        path = tmp_path / f"{name or kind}.pt"
+        metadata = base_metadata()
+        metadata["test_kind"] = kind
+        save_model(build_module(kind, value), metadata, path)
+        return path
+
+    return make
