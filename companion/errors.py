@@ -14,3 +14,11 @@ class ConfigError(CompanionError, ValueError):
 
 class ModelError(CompanionError):
     """A model file is missing, corrupted, does not match its recorded hash or its metadata."""
+
+
+class AutopilotError(CompanionError):
+    """The autopilot link failed, timed out, or refused a command (the message says which)."""
+
+
+class OffboardLostError(AutopilotError):
+    """The vehicle left OFFBOARD while we were commanding it (pilot switch or PX4 failsafe)."""
