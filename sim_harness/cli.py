@@ -3,6 +3,8 @@
     swarm-sim demo                       # the built-in default: 9 drones, common + opposing goals
     swarm-sim fly --scenario common --agents 9 --seed 0 --out runs/common
     swarm-sim view --scenario common --seed 0 --step 20 --agent 0   # what one drone sees
+    swarm-sim dataset generate --preset quick          # the paper's dataset (resumable)
+    swarm-sim dataset inspect data/quick-s0
 
 Errors are printed as one line on stderr with exit status 2.
 """
@@ -19,6 +21,7 @@ from typing import Any
 from companion.errors import CompanionError, ConfigError
 from companion.flocking import FlockingParams
 from sim_harness.controllers import TeacherController
+from sim_harness.dataset.cli import add_dataset_commands
 from sim_harness.plots import save_flight_figures, save_paper_figure
 from sim_harness.rollout import FlightLog, fly, save_flight, summarize
 from sim_harness.scenarios import SCENARIOS, ScenarioConfig, build_scenario
@@ -72,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_demo.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder")
     _add_flight_options(p_demo)
+    add_dataset_commands(sub)
     return parser
 
 
@@ -148,6 +152,9 @@ def _view(args: argparse.Namespace, rates: SimRates) -> int:
 
 def run(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    handler = getattr(args, "handler", None)
+    if handler is not None:  # commands registered by other modules carry their own handler
+        return int(handler(args))
     rates = SimRates(physics_hz=args.physics_hz, control_hz=args.control_hz)
     progress = not args.no_progress
     if args.command == "fly":

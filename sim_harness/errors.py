@@ -11,4 +11,10 @@ class ControllerError(SimError):
     """A controller returned commands of the wrong shape or non-finite values."""
 
 
-__all__ = ["ConfigError", "ControllerError", "SimError"]
+
+
+class DatasetError(SimError):
+    """A dataset on disk is missing, incomplete, corrupted or was made with other parameters."""
+
+
+__all__ = ["ConfigError", "ControllerError", "DatasetError", "SimError"]

@@ -1,0 +1,109 @@
+"""`swarm-sim dataset generate | inspect | merge`."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+from typing import Any
+
+from sim_harness.dataset.generate import generate, merge
+from sim_harness.dataset.inspect import inspect_dataset
+from sim_harness.dataset.spec import PRESETS, DatasetSpec
+from sim_harness.dataset.store import open_dataset
+from sim_harness.errors import ConfigError
+
+
+def _shard(text: str) -> tuple[int, int]:
+    try:
+        index, count = (int(x) for x in text.split("/"))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected INDEX/COUNT such as 0/4, got {text!r}") from exc
+    return index, count
+
+
+def add_dataset_commands(sub: Any) -> None:
+    """Register `dataset` and its subcommands on the top-level subparsers."""
+    p = sub.add_parser("dataset", help="generate, inspect and merge camera datasets")
+    dsub = p.add_subparsers(dest="dataset_command", required=True)
+    g = dsub.add_parser(
+        "generate",
+        help="generate (or resume) a dataset",
+        description="Generate the paper's dataset. Interrupted? Run the same command again: it "
+        "resumes where it stopped. The same seed gives the same dataset with any --workers.",
+    )
+    g.add_argument("--preset", default="quick", choices=sorted(PRESETS), help="default quick")
+    g.add_argument("--out", type=Path, default=None, help="folder (default data/<preset>-s<seed>)")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    for split in ("train", "val", "test"):
+        g.add_argument(f"--{split}", type=int, default=None, help=f"{split} samples (min)")
+    g.add_argument("--agents", type=int, default=None, help="drones per run (default 9)")
+    g.add_argument("--max-run-s", type=float, default=None, help="time limit of a run")
+    g.add_argument("--shard", type=_shard, default=(0, 1), help="INDEX/COUNT (default 0/1)")
+    g.add_argument("--no-progress", action="store_true")
+    g.set_defaults(handler=_generate)
+    i = dsub.add_parser("inspect", help="counts, splits, terminations, target stats, figures")
+    i.add_argument("dataset", type=Path)
+    i.add_argument(
+        "--out", type=Path, default=None, help="figures folder (default DATASET/inspect)"
+    )
+    i.set_defaults(handler=_inspect)
+    m = dsub.add_parser("merge", help="unite shards made with the same parameters")
+    m.add_argument("sources", type=Path, nargs="+")
+    m.add_argument("--out", type=Path, required=True)
+    m.set_defaults(handler=_merge)
+
+
+def _command_line() -> str:
+    return "swarm-sim " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
+def _generate(args: argparse.Namespace) -> int:
+    overrides: dict[str, Any] = {"seed": args.seed}
+    for split in ("train", "val", "test"):
+        if getattr(args, split) is not None:
+            overrides[f"{split}_samples"] = getattr(args, split)
+    if args.agents is not None:
+        overrides["n_agents"] = args.agents
+    if args.max_run_s is not None:
+        overrides["max_run_s"] = args.max_run_s
+    overrides["shard_index"], overrides["shard_count"] = args.shard
+    spec = DatasetSpec.preset(args.preset, **overrides)
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    out = args.out or Path("data") / f"{args.preset}-s{args.seed}"
+    try:
+        dataset = generate(
+            out, spec, workers=args.workers, progress=not args.no_progress, command=_command_line()
+        )
+    except KeyboardInterrupt:
+        print(
+            f"swarm-sim: interrupted; completed runs are kept in {out}: run the same command "
+            "to resume",
+            file=sys.stderr,
+        )
+        return 130
+    counts = dataset.manifest["counts"]
+    gen = dataset.manifest["generation"]
+    print(
+        f"wrote {out}: train {counts['train']}, val {counts['val']}, test {counts['test']} "
+        f"samples in {gen['wall_s']:.0f} s with {gen['workers']} worker(s)"
+    )
+    return 0
+
+
+def _inspect(args: argparse.Namespace) -> int:
+    dataset = open_dataset(args.dataset)
+    report = inspect_dataset(dataset, args.out or args.dataset / "inspect")
+    print(report["text"])
+    print(f"\nwrote {report['histogram']} and {report['samples']}")
+    return 0
+
+
+def _merge(args: argparse.Namespace) -> int:
+    dataset = merge(args.sources, args.out, command=_command_line())
+    counts = dataset.manifest["counts"]
+    print(f"wrote {args.out}: train {counts['train']}, val {counts['val']}, test {counts['test']}")
+    return 0

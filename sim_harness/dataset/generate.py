@@ -1,0 +1,379 @@
+"""Parallel, resumable, deterministic dataset generation, and merging of shards.
+
+Determinism: run k of a split is a pure function of (seed, split, k) (see `spec.run_rng`). A split
+is the shortest prefix of its run sequence that reaches the requested sample count, whatever the
+number of workers and whatever order the runs finished in; runs generated past that prefix are
+deleted. Resume: every run is stored atomically on completion, so an interrupted generation (Ctrl-C,
+kill, power loss) loses at most the runs in flight; the same command continues from the runs on
+disk. Shards: `shard_index`/`shard_count` interleave run indices (shard i of n makes runs i, i+n,
+...), so shards made on several machines never overlap and `merge` unites them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import multiprocessing as mp
+import os
+import shutil
+import subprocess
+import time
+from collections.abc import Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from companion.camera.layout import camera_spec
+from sim_harness.dataset.runs import simulate_run
+from sim_harness.dataset.spec import SPLITS, TERMINATIONS, DatasetSpec
+from sim_harness.dataset.store import (
+    FORMAT,
+    MANIFEST,
+    SPEC,
+    Dataset,
+    RunSummary,
+    open_dataset,
+    pixel_stats,
+    read_run_summary,
+    remove_partial_files,
+    run_path,
+    stored_runs,
+    write_json,
+    write_run,
+)
+from sim_harness.errors import DatasetError
+from sim_harness.render import PyBulletRenderer
+from sim_harness.scene import SceneSpec
+from sim_harness.vehicle import VehicleParams
+from sim_harness.world import World
+
+log = logging.getLogger(__name__)
+
+FRAMES = {
+    "world": "ENU (x east, y north, z up), metres",
+    "body": "FLU (x forward, y left, z up)",
+    "quaternion": "wxyz, rotates body FLU vectors into world ENU",
+    "targets": "teacher's Reynolds command (separation + cohesion, no migration), body FLU, m/s",
+}
+
+
+@dataclass
+class StageTimes:
+    """Seconds summed over runs, per stage, across all workers."""
+
+    render_s: float = 0.0
+    physics_s: float = 0.0
+    teacher_s: float = 0.0
+    write_s: float = 0.0
+
+    def add(self, other: StageTimes) -> None:
+        for k in asdict(self):
+            setattr(self, k, getattr(self, k) + getattr(other, k))
+
+
+# One world and renderer per worker process, created on its first run.
+_WORKER: tuple[World, PyBulletRenderer] | None = None
+
+
+def _make_run(root: Path, spec: DatasetSpec, split: str, run_index: int) -> tuple[int, StageTimes]:
+    """Simulate and store one run (in a worker process or in-process); returns its size, times."""
+    global _WORKER
+    if _WORKER is None or _WORKER[0].n_agents != spec.n_agents:
+        if _WORKER is not None:
+            _WORKER[0].close()
+        _WORKER = (World(spec.n_agents), PyBulletRenderer())
+    world, renderer = _WORKER
+    run = simulate_run(spec, split, run_index, world, renderer)
+    started = time.perf_counter()
+    write_run(root, run)
+    t = run.timing
+    return run.n_samples, StageTimes(
+        t.render_s, t.physics_s, t.teacher_s, time.perf_counter() - started
+    )
+
+
+def check_or_write_spec(root: Path, spec: DatasetSpec) -> None:
+    """Record the spec of a new dataset, or check that a resumed one was started with it."""
+    path = root / SPEC
+    if not path.exists():
+        root.mkdir(parents=True, exist_ok=True)
+        write_json(path, spec.as_dict())
+        return
+    started = DatasetSpec.from_dict(json.loads(path.read_text()))
+    if started.content_dict() != spec.content_dict() or (
+        started.shard_index,
+        started.shard_count,
+    ) != (spec.shard_index, spec.shard_count):
+        old, new = started.as_dict(), spec.as_dict()
+        diff = [k for k in new if k not in (f"{s}_samples" for s in SPLITS) and old[k] != new[k]]
+        raise DatasetError(
+            f"{root} was started with other parameters ({', '.join(diff)}): use another folder, "
+            "or the original parameters to resume"
+        )
+    if started != spec:  # only the sizes changed: record the new targets
+        write_json(path, spec.as_dict())
+
+
+class _SplitProgress:
+    """Which runs of one split exist (by position k in this shard's sequence) and their sizes."""
+
+    def __init__(self, root: Path, spec: DatasetSpec, split: str) -> None:
+        self.spec, self.split = spec, split
+        self.target = spec.target(split)
+        self.sizes: dict[int, int] = {}
+        for idx, path in stored_runs(root, split).items():
+            offset = idx - spec.shard_index
+            if offset >= 0 and offset % spec.shard_count == 0:  # else another shard's run
+                self.sizes[offset // spec.shard_count] = read_run_summary(path).n_samples
+
+    def prefix(self) -> tuple[int, int]:
+        """(number of runs, samples) of the contiguous prefix, stopping at the target."""
+        k, total = 0, 0
+        while k in self.sizes and total < self.target:
+            total += self.sizes[k]
+            k += 1
+        return k, total
+
+    def done(self) -> bool:
+        return self.prefix()[1] >= self.target
+
+    def next_missing(self, busy: set[int]) -> int:
+        k = 0
+        while k in self.sizes or k in busy:
+            k += 1
+        return k
+
+    def worth_starting(self, k: int, busy: set[int]) -> bool:
+        """False when the runs before k, counting busy ones at the mean size, reach the target."""
+        mean_run = sum(self.sizes.values()) / len(self.sizes) if self.sizes else 300.0
+        before = sum(n for j, n in self.sizes.items() if j < k)
+        before += mean_run * sum(1 for j in busy if j < k)
+        return before < self.target
+
+
+def _generate_split(
+    root: Path,
+    spec: DatasetSpec,
+    split: str,
+    pool: ProcessPoolExecutor | None,
+    workers: int,
+    progress: bool,
+    times: StageTimes,
+) -> None:
+    state = _SplitProgress(root, spec, split)
+    in_flight: dict[Future[tuple[int, StageTimes]], int] = {}
+
+    def record(k: int, n: int, t: StageTimes, bar: tqdm[Any]) -> None:
+        state.sizes[k] = n
+        times.add(t)
+        bar.update(max(0, min(state.prefix()[1], state.target) - bar.n))
+
+    with tqdm(
+        total=state.target,
+        initial=min(state.prefix()[1], state.target),
+        desc=f"{split:5s}",
+        unit=" samples",
+        disable=not progress,
+        smoothing=0.05,
+    ) as bar:
+        while not state.done():
+            if pool is None:
+                k = state.next_missing(set())
+                record(k, *_make_run(root, spec, split, spec.run_index(split, k)), bar)
+                continue
+            while len(in_flight) < 2 * workers:
+                busy = set(in_flight.values())
+                k = state.next_missing(busy)
+                if busy and not state.worth_starting(k, busy):
+                    break
+                in_flight[pool.submit(_make_run, root, spec, split, spec.run_index(split, k))] = k
+            finished, _ = wait(list(in_flight), return_when=FIRST_COMPLETED)
+            for future in finished:
+                record(in_flight.pop(future), *future.result(), bar)
+        for future in in_flight:  # started but not needed: let them finish, then drop them
+            future.result()
+    n_runs, _ = state.prefix()
+    for k in state.sizes:
+        if k >= n_runs:
+            run_path(root, split, spec.run_index(split, k)).unlink(missing_ok=True)
+
+
+def code_version() -> dict[str, str | None]:
+    """Package version and, when run from a git checkout, its commit."""
+    try:
+        version: str | None = metadata.version("vision-swarm")
+    except metadata.PackageNotFoundError:
+        version = None
+    commit = None
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+        commit = out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {"package": version, "git_commit": commit}
+
+
+def finalize(
+    root: Path,
+    spec: DatasetSpec,
+    runs: dict[str, list[int]],
+    command: str,
+    generation: dict[str, Any] | None = None,
+    extra: dict[str, Any] | None = None,
+) -> Dataset:
+    """Write the manifest for these runs (run indices per split, in order) and open the dataset."""
+    summaries: dict[str, list[RunSummary]] = {
+        split: [read_run_summary(run_path(root, split, k)) for k in runs[split]] for split in SPLITS
+    }
+    for split in SPLITS:
+        if not summaries[split]:
+            raise DatasetError(f"split {split!r} has no runs")
+    mean, std = pixel_stats(summaries["train"])
+    split_info = {
+        split: {
+            "n_samples": sum(r.n_samples for r in rs),
+            "n_runs": len(rs),
+            "terminations": {t: sum(r.termination == t for r in rs) for t in TERMINATIONS},
+            "runs": [
+                {"run_index": r.run_index, "n_samples": r.n_samples, "termination": r.termination}
+                for r in rs
+            ],
+        }
+        for split, rs in summaries.items()
+    }
+    content = {"content_id": spec.content_id(), "runs": {s: runs[s] for s in SPLITS}}
+    dataset_id = hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16]
+    manifest: dict[str, Any] = {
+        "format": FORMAT,
+        "id": dataset_id,
+        "content_id": spec.content_id(),
+        "spec": spec.as_dict(),
+        "camera": camera_spec(),
+        "scene": SceneSpec().as_dict(),
+        "vehicle": asdict(VehicleParams()),
+        "frames": FRAMES,
+        "code_version": code_version(),
+        "command": command,
+        "counts": {s: split_info[s]["n_samples"] for s in SPLITS},
+        "splits": split_info,
+        "pixel_mean": mean,
+        "pixel_std": std,
+        "generation": generation or {},
+        **(extra or {}),
+    }
+    write_json(root / MANIFEST, manifest)
+    dataset = open_dataset(root)
+    stats = {}
+    for split in SPLITS:
+        targets = dataset.split(split).targets.astype(np.float64)
+        stats[split] = {
+            "mean": targets.mean(axis=0).round(6).tolist(),
+            "std": targets.std(axis=0).round(6).tolist(),
+            "min": targets.min(axis=0).round(6).tolist(),
+            "max": targets.max(axis=0).round(6).tolist(),
+        }
+    manifest["target_stats"] = stats
+    write_json(root / MANIFEST, manifest)
+    return open_dataset(root)
+
+
+def generate(
+    root: str | Path,
+    spec: DatasetSpec,
+    workers: int | None = None,
+    progress: bool = True,
+    command: str = "",
+) -> Dataset:
+    """Generate (or resume) the dataset `spec` in `root`; returns it when complete."""
+    root = Path(root)
+    workers = workers or os.cpu_count() or 1
+    check_or_write_spec(root, spec)
+    (root / MANIFEST).unlink(missing_ok=True)  # incomplete again until finalized
+    leftovers = remove_partial_files(root)
+    if leftovers:
+        log.info("removed %d partial run file(s) of an interrupted generation", leftovers)
+    times = StageTimes()
+    started = time.perf_counter()
+    before = {s: len(stored_runs(root, s)) for s in SPLITS}
+    pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) if workers > 1 else None
+    try:
+        for split in SPLITS:
+            _generate_split(root, spec, split, pool, workers, progress, times)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+    wall = time.perf_counter() - started
+    runs = {
+        s: [spec.run_index(s, k) for k in range(_SplitProgress(root, spec, s).prefix()[0])]
+        for s in SPLITS
+    }
+    made = {s: len(stored_runs(root, s)) - before[s] for s in SPLITS}
+    busy = sum(asdict(times).values())
+    generation = {
+        "workers": workers,
+        "wall_s": round(wall, 3),
+        "new_runs": made,
+        "stage_share": {k: round(v / busy, 4) for k, v in asdict(times).items()} if busy else {},
+    }
+    return finalize(root, spec, runs, command, generation)
+
+
+def merge(sources: Sequence[str | Path], out: str | Path, command: str = "") -> Dataset:
+    """Unite completed datasets made with the same parameters (e.g. shards) into `out`.
+
+    A run present in several sources (same split and index) must be identical in each and is
+    taken once. Files are hard-linked when possible, else copied.
+    """
+    out = Path(out)
+    if (out / MANIFEST).exists() or (out / "runs").exists():
+        raise DatasetError(f"{out} already holds a dataset: merge into a new folder")
+    datasets = [open_dataset(s) for s in sources]
+    if not datasets:
+        raise DatasetError("merge needs at least one source dataset")
+    specs = [DatasetSpec.from_dict(d.manifest["spec"]) for d in datasets]
+    ids = {s.content_id() for s in specs}
+    if len(ids) != 1:
+        raise DatasetError(
+            "cannot merge datasets made with different parameters (content ids "
+            f"{', '.join(sorted(ids))}); only seed-compatible shards of one spec merge"
+        )
+    chosen: dict[str, dict[int, RunSummary]] = {s: {} for s in SPLITS}
+    for ds in datasets:
+        for split in SPLITS:
+            for entry in ds.manifest["splits"][split]["runs"]:
+                k = int(entry["run_index"])
+                src = run_path(ds.root, split, k)
+                summary = read_run_summary(src)
+                if k in chosen[split]:
+                    if chosen[split][k] != summary:
+                        raise DatasetError(f"run {k} of {split} differs between sources")
+                    continue
+                chosen[split][k] = summary
+                dst = run_path(out, split, k)
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    os.link(src, dst)
+                except OSError:
+                    shutil.copy2(src, dst)
+    runs = {s: sorted(chosen[s]) for s in SPLITS}
+    sizes = {f"{s}_samples": sum(r.n_samples for r in chosen[s].values()) for s in SPLITS}
+    merged = DatasetSpec.from_dict(
+        {**specs[0].as_dict(), **sizes, "shard_index": 0, "shard_count": 1}
+    )
+    write_json(out / SPEC, merged.as_dict())
+    return finalize(
+        out, merged, runs, command, extra={"merged_from": [str(d.root) for d in datasets]}
+    )
