@@ -22,3 +22,11 @@ class AutopilotError(CompanionError):
 
 class OffboardLostError(AutopilotError):
     """The vehicle left OFFBOARD while we were commanding it (pilot switch or PX4 failsafe)."""
+
+
+class RecorderError(CompanionError):
+    """The flight recorder cannot write its files."""
+
+
+class TelemetryError(CompanionError):
+    """The telemetry session cannot be opened (e.g. an endpoint's port is taken)."""

@@ -16,72 +16,66 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
-import torch
-from torch import Tensor, nn
-
-from companion.model_file import base_metadata, save_model
 
 SPIN_ITERS_PER_UNIT = 20_000
 
 
-class _Constant(nn.Module):
-    def __init__(self, value: Sequence[float]) -> None:
-        super().__init__()
-        self.register_buffer("value", torch.tensor(list(value), dtype=torch.float32))
+def build_module(kind: str, value: Sequence[float] = (1.0, 0.0, 0.0)) -> Any:
+    """A scripted test policy (torch imported here: the other companion tests do not pay for it)."""
+    import torch
+    from torch import Tensor, nn
 
-    def forward(self, images: Tensor) -> Tensor:
-        return self.value.expand(images.shape[0], 3).clone()
+    class Constant(nn.Module):
+        def __init__(self, value: Sequence[float]) -> None:
+            super().__init__()
+            self.register_buffer("value", torch.tensor(list(value), dtype=torch.float32))
 
+        def forward(self, images: Tensor) -> Tensor:
+            return self.value.expand(images.shape[0], 3).clone()
 
-class _Brightness(nn.Module):
-    def forward(self, images: Tensor) -> Tensor:
-        mean = images.to(torch.float32).mean(dim=(1, 2)) / 255.0
-        return torch.stack([mean, -mean, torch.zeros_like(mean)], dim=1)
+    class Brightness(nn.Module):
+        def forward(self, images: Tensor) -> Tensor:
+            mean = images.to(torch.float32).mean(dim=(1, 2)) / 255.0
+            return torch.stack([mean, -mean, torch.zeros_like(mean)], dim=1)
 
+    class NaN(nn.Module):
+        def forward(self, images: Tensor) -> Tensor:
+            return torch.full((images.shape[0], 3), float("nan"))
 
-class _NaN(nn.Module):
-    def forward(self, images: Tensor) -> Tensor:
-        return torch.full((images.shape[0], 3), float("nan"))
+    class Wide(nn.Module):
+        def forward(self, images: Tensor) -> Tensor:
+            return torch.zeros(images.shape[0], 4)
 
+    class Raise(nn.Module):
+        def forward(self, images: Tensor) -> Tensor:
+            if int(images[0, 0, 0]) == 255:
+                raise RuntimeError("synthetic model failure")
+            return torch.zeros(images.shape[0], 3)
 
-class _Wide(nn.Module):
-    def forward(self, images: Tensor) -> Tensor:
-        return torch.zeros(images.shape[0], 4)
+    class Spin(nn.Module):
+        def __init__(self, iters_per_unit: int) -> None:
+            super().__init__()
+            self.iters_per_unit = iters_per_unit
 
+        def forward(self, images: Tensor) -> Tensor:
+            n = int(images[0, 0, 0]) * self.iters_per_unit
+            acc = torch.zeros(images.shape[0], 3)
+            for _ in range(n):
+                acc = acc + 0.0
+            return acc + torch.tensor([0.5, 0.0, 0.0])
 
-class _Raise(nn.Module):
-    def forward(self, images: Tensor) -> Tensor:
-        if int(images[0, 0, 0]) == 255:
-            raise RuntimeError("synthetic model failure")
-        return torch.zeros(images.shape[0], 3)
-
-
-class _Spin(nn.Module):
-    def __init__(self, iters_per_unit: int) -> None:
-        super().__init__()
-        self.iters_per_unit = iters_per_unit
-
-    def forward(self, images: Tensor) -> Tensor:
-        n = int(images[0, 0, 0]) * self.iters_per_unit
-        acc = torch.zeros(images.shape[0], 3)
-        for _ in range(n):
-            acc = acc + 0.0
-        return acc + torch.tensor([0.5, 0.0, 0.0])
-
-
-def build_module(kind: str, value: Sequence[float] = (1.0, 0.0, 0.0)) -> torch.jit.ScriptModule:
     modules: dict[str, Callable[[], nn.Module]] = {
-        "constant": lambda: _Constant(value),
-        "brightness": _Brightness,
-        "nan": _NaN,
-        "wide": _Wide,
-        "raise": _Raise,
-        "spin": lambda: _Spin(SPIN_ITERS_PER_UNIT),
+        "constant": lambda: Constant(value),
+        "brightness": Brightness,
+        "nan": NaN,
+        "wide": Wide,
+        "raise": Raise,
+        "spin": lambda: Spin(SPIN_ITERS_PER_UNIT),
     }
-    scripted: torch.jit.ScriptModule = torch.jit.script(modules[kind]().eval())
-    return scripted
+    return torch.jit.script(modules[kind]().eval())
 
 
 PolicyFactory = Callable[..., Path]
@@ -95,6 +89,8 @@ def make_policy_file(tmp_path: Path) -> PolicyFactory:
     """
 
     def make(kind: str, value: Sequence[float] = (1.0, 0.0, 0.0), name: str | None = None) -> Path:
+        from companion.model_file import base_metadata, save_model
+
         path = tmp_path / f"{name or kind}.pt"
         metadata = base_metadata()
         metadata["test_kind"] = kind
