@@ -1,4 +1,4 @@
-"""Flight recorder: MCAP written and read back, rotation, dropping, files left by a killed writer."""
+"""Flight recorder: MCAP written and read back, rotation, dropping, a killed writer's file."""
 
 from __future__ import annotations
 
