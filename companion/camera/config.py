@@ -55,13 +55,13 @@ def normalize_camera_id(field_name: str, value: object) -> str:
 
 def validate_baud(field_name: str, value: int) -> int:
     """Baud rate in [BAUD_MIN, BAUD_MAX], never one of `FORBIDDEN_BAUDS`."""
-    baud = require_int_range(field_name, value, BAUD_MIN, BAUD_MAX)
+    baud = require_int_range(field_name, value, 0)
     if baud in FORBIDDEN_BAUDS:
         raise ConfigError(
             f"{field_name}: {baud} is reserved by the OpenMV firmware for IDE debug mode; "
             f"use another rate in [{BAUD_MIN}, {BAUD_MAX}] except 921600, e.g. {DEFAULT_BAUD}"
         )
-    return baud
+    return require_int_range(field_name, baud, BAUD_MIN, BAUD_MAX)
 
 
 def _check_keys(where: str, table: Mapping[str, Any], allowed: tuple[str, ...]) -> None:

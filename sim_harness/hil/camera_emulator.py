@@ -151,6 +151,7 @@ class CameraEmulator:
         """Create the six ptys and symlinks and start streaming in a daemon thread."""
         if self._thread is not None:
             raise SimError("camera emulator: already started")
+        self._tiles(0.0, 0)  # a source of the wrong shape fails here, not in the thread
         self._directory.mkdir(parents=True, exist_ok=True)
         now_s = self._clock()
         self._start_s = self._next_frame_s = now_s
@@ -349,11 +350,8 @@ class CameraEmulator:
     def _send_frames(self, now_s: float) -> None:
         missed = int((now_s - self._next_frame_s) / self._period_s)
         self._next_frame_s += (missed + 1) * self._period_s
-        tiles = np.asarray(self._source(now_s - self._start_s, self._tick))
+        tiles = self._tiles(now_s - self._start_s, self._tick)
         self._tick += 1
-        if tiles.shape != (N_FACES, FACE_SIZE_PX, FACE_SIZE_PX) or tiles.dtype != np.uint8:
-            raise SimError(f"camera emulator: source gave {tiles.dtype} {tiles.shape}, expected "
-                           f"uint8 ({N_FACES}, {FACE_SIZE_PX}, {FACE_SIZE_PX})")  # fmt: skip
         for index, cam in enumerate(self._cameras.values()):
             if cam.master_fd is None or not cam.announced or cam.stats.stalled:
                 continue
@@ -368,6 +366,13 @@ class CameraEmulator:
                 cam.fps_frames += 1
             else:
                 cam.stats.frames_dropped += 1
+
+    def _tiles(self, t_s: float, tick: int) -> NDArray[np.uint8]:
+        tiles = self._source(t_s, tick)
+        if tiles.shape != (N_FACES, FACE_SIZE_PX, FACE_SIZE_PX) or tiles.dtype != np.uint8:
+            raise SimError(f"camera emulator: source gave {tiles.dtype} {tiles.shape}, expected "
+                           f"uint8 ({N_FACES}, {FACE_SIZE_PX}, {FACE_SIZE_PX})")  # fmt: skip
+        return tiles
 
     @staticmethod
     def _next_seq(cam: _Camera) -> int:
@@ -406,10 +411,14 @@ def _as_source(source: TileSource | NDArray[np.uint8]) -> Callable[[float, int],
     """Uniform source: (seconds since start, tick index) -> (6, 64, 64) uint8."""
     if isinstance(source, np.ndarray):
         recorded = np.asarray(source)
-        if recorded.ndim != 3 or recorded.shape[0] == 0 or recorded.dtype != np.uint8:
+        if (
+            recorded.shape[1:] != (FACE_SIZE_PX, N_FACES * FACE_SIZE_PX)
+            or recorded.ndim != 3
+            or (recorded.shape[0] == 0 or recorded.dtype != np.uint8)
+        ):
             raise SimError(f"camera emulator: recording must be (N, 64, 384) uint8, "
                            f"got {recorded.dtype} {recorded.shape}")  # fmt: skip
         tiles = split(recorded)  # (N, 6, 64, 64)
         return lambda _t_s, tick: tiles[tick % len(tiles)]
     fn = source
-    return lambda t_s, _tick: np.asarray(fn(t_s), dtype=np.uint8)
+    return lambda t_s, _tick: np.asarray(fn(t_s))
