@@ -1,5 +1,6 @@
-"""OpenMV camera link: wire protocol v1 (docs/camera-protocol.md), encoders and streaming parser."""
+"""OpenMV cameras: wire protocol v1 (docs/camera-protocol.md), serial links, the six-face rig."""
 
+from companion.camera.config import CameraRigConfig, FaceCameraConfig
 from companion.camera.protocol import (
     HEADER_SIZE,
     MAGIC,
@@ -20,24 +21,42 @@ from companion.camera.protocol import (
     encode_message,
     encode_status,
 )
+from companion.camera.rig import FaceIssue, FaceProblem, Rig, RigImage, RigNotReady, RigSnapshot
+from companion.camera.serial_link import LinkStatus, SerialCameraLink, links_from_config, run_links
+from companion.camera.slot import CameraFrame, FrameSource, LatestSlot
 
 __all__ = [
     "HEADER_SIZE",
     "MAGIC",
     "MAX_PAYLOAD_SIZE",
     "PROTOCOL_VERSION",
+    "CameraFrame",
+    "CameraRigConfig",
+    "FaceCameraConfig",
+    "FaceIssue",
+    "FaceProblem",
     "FrameMessage",
     "FrameParser",
+    "FrameSource",
     "HelloMessage",
+    "LatestSlot",
+    "LinkStatus",
     "Message",
     "MessageType",
     "ParserCounters",
     "PixelFormat",
     "ProtocolError",
+    "Rig",
+    "RigImage",
+    "RigNotReady",
+    "RigSnapshot",
+    "SerialCameraLink",
     "StatusMessage",
     "crc16_ccitt_false",
     "encode_frame",
     "encode_hello",
     "encode_message",
     "encode_status",
+    "links_from_config",
+    "run_links",
 ]

@@ -23,13 +23,14 @@ methods (`stall`, `unplug`, `replug`, `inject`, `corrupt_frames`) are thread-saf
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import select
 import termios
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,14 +39,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.camera.config import CameraRigConfig, FaceCameraConfig
-from companion.camera.layout import FACE_NAMES, FACE_SIZE_PX, N_FACES, split
+from companion.camera.layout import FACE_NAMES, FACE_SIZE_PX, N_FACES
 from companion.camera.protocol import HEADER_SIZE, encode_frame, encode_hello, encode_status
 from sim_harness.errors import SimError
+from sim_harness.hil.camera_sources import TileSource, as_tile_source, bar_pattern
 
 logger = logging.getLogger(__name__)
-
-TileSource = Callable[[float], NDArray[np.uint8] | Sequence[NDArray[np.uint8]]]
-"""Seconds since the emulator started -> six (64, 64) uint8 tiles in FACE_NAMES order."""
 
 FIRMWARE = "openmv-emulator-1.0.0"
 PLATFORM = "sim"
@@ -55,15 +54,6 @@ POLL_S = 0.01  # connection polling period (the firmware polls DTR every 20 ms)
 def default_uid(face: str) -> str:
     """A stable 12-byte board unique id (24 hex digits) per face, like the STM32F7's."""
     return f"e0c0{FACE_NAMES.index(face):04x}0d5136303638383{FACE_NAMES.index(face)}"
-
-
-def bar_pattern(t_s: float) -> NDArray[np.uint8]:
-    """Default source: per face a distinct level plus a bar moving one column per 0.1 s."""
-    tiles = np.empty((N_FACES, FACE_SIZE_PX, FACE_SIZE_PX), dtype=np.uint8)
-    for index in range(N_FACES):
-        tiles[index] = 30 + 35 * index
-    tiles[:, :, int(t_s * 10.0) % FACE_SIZE_PX] = 255
-    return tiles
 
 
 @dataclass
@@ -124,7 +114,7 @@ class CameraEmulator:
         if not rate_hz > 0 or not hello_period_s > 0 or not status_period_s > 0:
             raise SimError("camera emulator: rate_hz and periods must be > 0")
         self._directory = Path(directory)
-        self._source = _as_source(source)
+        self._source = as_tile_source(source)
         self._period_s = 1.0 / rate_hz
         self._hello_period_s = hello_period_s
         self._status_period_s = status_period_s
@@ -294,11 +284,9 @@ class CameraEmulator:
         events = cam.poller.poll(0)
         if events and events[0][1] & select.POLLHUP:
             return False, False
-        try:
+        with contextlib.suppress(OSError):  # BlockingIOError once drained
             while os.read(cam.master_fd, 4096):
                 pass
-        except (BlockingIOError, OSError):
-            pass
         raw = not termios.tcgetattr(cam.master_fd)[3] & termios.ICANON
         return True, raw
 
@@ -360,7 +348,7 @@ class CameraEmulator:
                                            timestamp_us=self._camera_us(cam, now_s)))  # fmt: skip
             if cam.corrupt_left > 0:
                 cam.corrupt_left -= 1
-                frame[HEADER_SIZE + len(frame) // 2 - HEADER_SIZE // 2] ^= 0x5A
+                frame[(HEADER_SIZE + len(frame)) // 2] ^= 0x5A  # mid-payload
             if self._queue(cam, bytes(frame)):
                 cam.stats.frames_sent += 1
                 cam.fps_frames += 1
@@ -382,6 +370,7 @@ class CameraEmulator:
 
     @staticmethod
     def _camera_us(cam: _Camera, now_s: float) -> int:
+        """The camera's capture clock: µs since it booted (was plugged)."""
         return max(0, int((now_s - cam.boot_s) * 1e6))
 
     @classmethod
@@ -405,20 +394,3 @@ class CameraEmulator:
             cam.pending.clear()
             return
         del cam.pending[:written]
-
-
-def _as_source(source: TileSource | NDArray[np.uint8]) -> Callable[[float, int], NDArray[np.uint8]]:
-    """Uniform source: (seconds since start, tick index) -> (6, 64, 64) uint8."""
-    if isinstance(source, np.ndarray):
-        recorded = np.asarray(source)
-        if (
-            recorded.shape[1:] != (FACE_SIZE_PX, N_FACES * FACE_SIZE_PX)
-            or recorded.ndim != 3
-            or (recorded.shape[0] == 0 or recorded.dtype != np.uint8)
-        ):
-            raise SimError(f"camera emulator: recording must be (N, 64, 384) uint8, "
-                           f"got {recorded.dtype} {recorded.shape}")  # fmt: skip
-        tiles = split(recorded)  # (N, 6, 64, 64)
-        return lambda _t_s, tick: tiles[tick % len(tiles)]
-    fn = source
-    return lambda t_s, _tick: np.asarray(fn(t_s))
