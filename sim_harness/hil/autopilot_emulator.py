@@ -1,0 +1,374 @@
+"""A PX4 emulator that MAVSDK talks to over MAVLink 2 on loopback UDP.
+
+Wiring (the same as PX4 SITL): the client (MAVSDK) listens with `udpin://127.0.0.1:PORT`; the
+emulator binds its own ephemeral port on 127.0.0.1 and sends everything to PORT, and MAVSDK
+answers to the address the datagrams came from. The emulator can therefore start before or after
+the client, and never needs to learn the client's address. Two listeners on one port do not fail
+on Linux, so the harness must hand out distinct ports (`free_udp_port`).
+
+The emulator runs in one background thread: it receives commands and setpoints, applies PX4's
+mode and arming rules (`px4_logic`), steps a `VehicleBackend` (default: `FirstOrderVehicle`) at
+the physics rate and streams telemetry like PX4 does for an onboard link. Test hooks: the logs of
+setpoints, commands and mode changes; `pilot_switch_mode` (the RC pilot changes mode);
+`set_link_alive(False)` (the link drops: nothing is sent and everything received is ignored).
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import socket
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.validation import require_int_range, require_non_negative, require_positive
+from sim_harness.errors import ConfigError, SimError
+from sim_harness.hil import px4_commands as cmds
+from sim_harness.hil import px4_messages as msgs
+from sim_harness.hil.emulated_vehicle import FirstOrderVehicle, VehicleBackend, VehicleStateNed
+from sim_harness.hil.px4_logic import (
+    LandedState,
+    MavResult,
+    ModeChange,
+    Px4Logic,
+    Px4LogicConfig,
+    Px4Mode,
+)
+from sim_harness.hil.px4_messages import SetpointRecord
+
+LOOPBACK = "127.0.0.1"
+_MAX_WAIT_S = 0.02  # longest the thread sleeps: bounds how long stop() takes
+
+logger = logging.getLogger(__name__)
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that nothing is bound to right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind((LOOPBACK, 0))
+        return int(sock.getsockname()[1])
+
+
+@dataclass(frozen=True)
+class EmulatorConfig:
+    """Where to send, how often, and how the vehicle starts.
+
+    `client_port`: the UDP port the client listens on (MAVSDK `udpin://127.0.0.1:PORT`).
+    Rates in Hz; the start state is on the ground, disarmed, in `start_mode`, unless
+    `start_altitude_m` > 0 (then `start_armed` must be True: hovering at that altitude).
+    """
+
+    client_port: int
+    system_id: int = 1
+    component_id: int = 1
+    heartbeat_rate_hz: float = 1.0
+    telemetry_rate_hz: float = 30.0  # LOCAL_POSITION_NED, ATTITUDE(_QUATERNION), GLOBAL_POSITION
+    status_rate_hz: float = 2.0  # SYS_STATUS, EXTENDED_SYS_STATE, HOME_POSITION
+    physics_rate_hz: float = 50.0
+    start_mode: Px4Mode = Px4Mode.HOLD
+    start_armed: bool = False
+    start_altitude_m: float = 0.0
+    start_yaw_rad: float = 0.0
+    home: msgs.Home = field(default_factory=lambda: msgs.Home(47.397742, 8.545594, 488.0))
+    log_capacity: int = 10_000  # setpoints and commands kept (oldest dropped first)
+    px4: Px4LogicConfig = field(default_factory=Px4LogicConfig)
+
+    def __post_init__(self) -> None:
+        require_int_range("emulator.client_port", self.client_port, 1, 65535)
+        require_int_range("emulator.system_id", self.system_id, 1, 255)
+        require_int_range("emulator.component_id", self.component_id, 1, 255)
+        for name in ("heartbeat_rate_hz", "telemetry_rate_hz", "status_rate_hz"):
+            require_positive(f"emulator.{name}", getattr(self, name))
+        require_positive("emulator.physics_rate_hz", self.physics_rate_hz)
+        require_non_negative("emulator.start_altitude_m", self.start_altitude_m)
+        require_int_range("emulator.log_capacity", self.log_capacity, 1)
+        if self.start_altitude_m > 0.0 and not self.start_armed:
+            raise ConfigError("emulator.start_armed: must be True when start_altitude_m > 0")
+
+    @classmethod
+    def hovering(cls, client_port: int, altitude_m: float = 5.0, **kwargs: Any) -> EmulatorConfig:
+        """Armed and hovering at `altitude_m` in POSCTL, as if a pilot had taken off."""
+        kwargs.setdefault("start_mode", Px4Mode.POSCTL)
+        return cls(client_port, start_armed=True, start_altitude_m=altitude_m, **kwargs)
+
+
+@dataclass(frozen=True)
+class CommandRecord:
+    """One COMMAND_LONG / COMMAND_INT as received, with the result sent back."""
+
+    t_s: float
+    command: int
+    params: tuple[float, ...]
+    result: MavResult
+
+
+class AutopilotEmulator:
+    """PX4 over MAVLink/UDP for one vehicle. Use as a context manager, or start()/stop()."""
+
+    def __init__(self, config: EmulatorConfig, backend: VehicleBackend | None = None) -> None:
+        self.config = config
+        if backend is None:
+            backend = FirstOrderVehicle(
+                pos_ned_m=(0.0, 0.0, -config.start_altitude_m), yaw_ned_rad=config.start_yaw_rad
+            )
+        self._backend = backend
+        self._lock = threading.Lock()
+        self._logic = Px4Logic(config.px4, config.start_mode, config.start_armed)
+        self._state = backend.state()
+        self._setpoints: deque[SetpointRecord] = deque(maxlen=config.log_capacity)
+        self._commands: deque[CommandRecord] = deque(maxlen=config.log_capacity)
+        self._link_alive = True
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._sock: socket.socket | None = None
+        self._mav = mavlink.MAVLink(
+            None, srcSystem=config.system_id, srcComponent=config.component_id
+        )
+        self._mav.robust_parsing = True
+        self._t0_s = time.monotonic()
+        self._client = (LOOPBACK, config.client_port)
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> AutopilotEmulator:
+        """Bind the socket and start the thread. Returns self."""
+        if self._thread is not None:
+            raise SimError("autopilot emulator already started")
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind((LOOPBACK, 0))
+        if sock.getsockname()[1] == self.config.client_port:  # the kernel reused the free port
+            sock.close()
+            return self.start()
+        sock.setblocking(False)
+        self._sock = sock
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="px4-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Stop the thread (within about 20 ms) and close the socket. Idempotent."""
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout_s)
+            if thread.is_alive():
+                logger.warning("autopilot emulator thread did not stop within %.1f s", timeout_s)
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def __enter__(self) -> AutopilotEmulator:
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+    @property
+    def local_port(self) -> int:
+        """The emulator's own UDP port (where the client's datagrams arrive)."""
+        if self._sock is None:
+            raise SimError("autopilot emulator not started")
+        return int(self._sock.getsockname()[1])
+
+    # -- observers (thread-safe) -------------------------------------------------------------
+
+    @property
+    def mode(self) -> Px4Mode:
+        """The current flight mode."""
+        with self._lock:
+            return self._logic.mode
+
+    @property
+    def armed(self) -> bool:
+        """Whether the motors are armed."""
+        with self._lock:
+            return self._logic.armed
+
+    @property
+    def landed_state(self) -> LandedState:
+        """On the ground, in the air, taking off or landing."""
+        with self._lock:
+            return self._logic.landed_state(self._state)
+
+    def vehicle_state(self) -> VehicleStateNed:
+        """The latest vehicle state (NED, see `emulated_vehicle`)."""
+        with self._lock:
+            return self._state
+
+    def setpoints(self) -> list[SetpointRecord]:
+        """Every setpoint received (oldest first, at most `log_capacity`)."""
+        with self._lock:
+            return list(self._setpoints)
+
+    def commands(self) -> list[CommandRecord]:
+        """Every command received (oldest first), repeats included."""
+        with self._lock:
+            return list(self._commands)
+
+    def mode_changes(self) -> list[ModeChange]:
+        """Every flight-mode change (oldest first), with its reason."""
+        with self._lock:
+            return list(self._logic.mode_log)
+
+    # -- test hooks --------------------------------------------------------------------------
+
+    def pilot_switch_mode(self, mode: Px4Mode) -> MavResult:
+        """The RC pilot flips the mode switch (OFFBOARD still needs fresh setpoints)."""
+        with self._lock:
+            return self._logic.set_mode(self._now(), mode, "pilot switch")
+
+    def set_link_alive(self, alive: bool) -> None:
+        """False: stop sending and ignore everything received, as if the radio link were cut."""
+        with self._lock:
+            self._link_alive = alive
+
+    # -- the thread --------------------------------------------------------------------------
+
+    def _now(self) -> float:
+        return time.monotonic() - self._t0_s
+
+    def _run(self) -> None:
+        sock = self._sock
+        assert sock is not None
+        cfg = self.config
+        periods = {
+            "physics": 1.0 / cfg.physics_rate_hz,
+            "heartbeat": 1.0 / cfg.heartbeat_rate_hz,
+            "telemetry": 1.0 / cfg.telemetry_rate_hz,
+            "status": 1.0 / cfg.status_rate_hz,
+        }
+        now = self._now()
+        due = dict.fromkeys(periods, now)
+        last_physics = now
+        try:
+            while not self._stop.is_set():
+                wait_s = min(_MAX_WAIT_S, max(0.0, min(due.values()) - self._now()))
+                readable, _, _ = select.select([sock], [], [], wait_s)
+                if readable:
+                    self._receive(sock)
+                now = self._now()
+                for name, period in periods.items():
+                    if now < due[name]:
+                        continue
+                    # Fixed cadence; after a stall, restart from now instead of bursting.
+                    due[name] = due[name] + period if now - due[name] < period else now + period
+                    if name == "physics":
+                        self._step_physics(now, now - last_physics)
+                        last_physics = now
+                    else:
+                        self._send_stream(name, now)
+        except OSError as exc:  # the socket was closed under us by stop()
+            if not self._stop.is_set():
+                logger.error("autopilot emulator stopped: %s", exc)
+
+    def _receive(self, sock: socket.socket) -> None:
+        while True:
+            try:
+                data, _addr = sock.recvfrom(65536)
+            except BlockingIOError:
+                return
+            with self._lock:
+                alive = self._link_alive
+            if not alive:
+                continue
+            try:
+                parsed = self._mav.parse_buffer(data) or []
+            except mavlink.MAVError as exc:
+                logger.debug("dropped a malformed datagram: %s", exc)
+                continue
+            for msg in parsed:
+                try:
+                    self._handle(msg)
+                except Exception:  # one bad message must not take the emulator down
+                    logger.exception("failed to handle %s", msg.get_type())
+
+    def _step_physics(self, now: float, dt_s: float) -> None:
+        with self._lock:
+            command = self._logic.update(now, self._state)
+            self._state = self._backend.step(dt_s, command)
+
+    def _send(self, msg: mavlink.MAVLink_message) -> None:
+        sock = self._sock
+        if sock is None:
+            return
+        with self._lock:
+            if not self._link_alive:
+                return
+        data = msg.pack(self._mav)
+        self._mav.seq = (self._mav.seq + 1) % 256
+        try:
+            sock.sendto(data, self._client)
+        except OSError as exc:  # e.g. ECONNREFUSED from an earlier send: nobody listens yet
+            logger.debug("send failed: %s", exc)
+
+    def _send_stream(self, name: str, now: float) -> None:
+        mav = self._mav
+        t_ms = int(now * 1000.0) & 0xFFFFFFFF
+        with self._lock:
+            state = self._state
+            mode, armed = self._logic.mode, self._logic.armed
+            in_air = self._logic.in_air(state)
+            landed = self._logic.landed_state(state)
+        home = self.config.home
+        if name == "heartbeat":
+            out = [msgs.heartbeat(mav, mode, armed, in_air)]
+        elif name == "telemetry":
+            out = [
+                msgs.local_position(mav, t_ms, state),
+                msgs.attitude_quaternion(mav, t_ms, state),
+                msgs.attitude(mav, t_ms, state),
+                msgs.global_position(mav, t_ms, state, home),
+            ]
+        else:
+            out = [
+                msgs.sys_status(mav),
+                msgs.extended_sys_state(mav, landed),
+                msgs.home_position(mav, home),
+            ]
+        for msg in out:
+            self._send(msg)
+
+    def _addressed_to_us(self, msg: mavlink.MAVLink_message) -> bool:
+        system = getattr(msg, "target_system", 0)
+        component = getattr(msg, "target_component", 0)
+        return system in (0, self.config.system_id) and component in (0, self.config.component_id)
+
+    def _handle(self, msg: mavlink.MAVLink_message) -> None:
+        kind = msg.get_type()
+        now = self._now()
+        if kind == "SET_POSITION_TARGET_LOCAL_NED" and self._addressed_to_us(msg):
+            with self._lock:
+                record, command = msgs.decode_setpoint(now, msg, self._state.yaw_ned_rad)
+                self._setpoints.append(record)
+                if command is not None:
+                    self._logic.on_setpoint(now, command)
+        elif kind in ("COMMAND_LONG", "COMMAND_INT") and self._addressed_to_us(msg):
+            self._handle_command(msg, now)
+        elif kind == "TIMESYNC" and msg.tc1 == 0:
+            self._send(self._mav.timesync_encode(time.monotonic_ns(), msg.ts1))
+
+    def _handle_command(self, msg: mavlink.MAVLink_message, now: float) -> None:
+        command, params, home = int(msg.command), cmds.command_params(msg), self.config.home
+        with self._lock:
+            result = cmds.apply_command(self._logic, self._state, command, params, now, home)
+            self._commands.append(CommandRecord(now, command, params, result))
+        uid = 0x5058_3400_0000_0000 | (self.config.system_id << 8) | self.config.component_id
+        after = cmds.follow_up(self._mav, command, params, result, home, uid)
+        src_system, src_component = msg.get_srcSystem(), msg.get_srcComponent()
+        self._send(
+            self._mav.command_ack_encode(command, int(result), 0, 0, src_system, src_component)
+        )
+        if after is not None:
+            self._send(after)
