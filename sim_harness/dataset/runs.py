@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.camera.layout import IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX
-from companion.flocking import pairwise_offsets, reynolds_from_offsets
+from companion.flocking import FlockingParams, pairwise_offsets, reynolds_from_offsets
 from companion.frames import quat_to_rotmat, world_to_body
 from sim_harness.dataset.spec import TERMINATIONS, DatasetSpec, run_rng, sample_in_cone
 from sim_harness.render import Renderer
@@ -87,13 +87,42 @@ def initial_conditions(
     return pos, vel, mig
 
 
+def teacher_targets(
+    pos_world_enu: FloatArray, q_world_body: FloatArray, params: FlockingParams
+) -> dict[str, FloatArray]:
+    """The teacher's Reynolds command of every agent, world ENU and body FLU, from true positions.
+
+    Returns "rey_world", "rey_body" (N, 3) m/s, "n_neighbours" (N,) and "nearest_m" (N,).
+    """
+    n = len(pos_world_enu)
+    offsets = pairwise_offsets(pos_world_enu)
+    sep, coh, count = reynolds_from_offsets(offsets, ~np.eye(n, dtype=bool), params)
+    rey_world = sep + coh
+    dist = np.linalg.norm(offsets, axis=-1)
+    np.fill_diagonal(dist, np.inf)
+    return {
+        "rey_world": rey_world,
+        "rey_body": world_to_body(rey_world, quat_to_rotmat(q_world_body)),
+        "n_neighbours": count.astype(np.float64),
+        "nearest_m": dist.min(axis=1),
+    }
+
+
 def simulate_run(
-    spec: DatasetSpec, split: str, run_index: int, world: World, renderer: Renderer
+    spec: DatasetSpec,
+    split: str,
+    run_index: int,
+    world: World,
+    renderer: Renderer,
+    initial: tuple[FloatArray, FloatArray, FloatArray] | None = None,
 ) -> RunData:
-    """Fly one run and collect its samples; `world` must hold `spec.n_agents` drones."""
+    """Fly one run and collect its samples; `world` must hold `spec.n_agents` drones.
+
+    `initial` replaces the run's random (positions, velocity commands, migration point), for tests.
+    """
     if world.n_agents != spec.n_agents:
         raise ValueError(f"world has {world.n_agents} drones, the dataset {spec.n_agents}")
-    pos0, vel_cmd, mig = initial_conditions(spec, split, run_index)
+    pos0, vel_cmd, mig = initial or initial_conditions(spec, split, run_index)
     rates = spec.rates
     yaw0 = np.arctan2(vel_cmd[:, 1], vel_cmd[:, 0])
     vehicle = VehicleModel(VehicleParams(), pos0, yaw0)
@@ -105,7 +134,6 @@ def simulate_run(
     rows: dict[str, list[FloatArray]] = {
         k: [] for k in ("pos", "vel", "q", "rey_world", "rey_body", "n_nb", "nearest", "t")
     }
-    not_self = ~np.eye(n, dtype=bool)
     reason = "time_limit"
     for step in range(max_steps):
         t_s = step * rates.control_dt_s
@@ -118,18 +146,14 @@ def simulate_run(
         started = time.perf_counter()
         images.append(renderer.render(world, pos, q))
         mid = time.perf_counter()
-        offsets = pairwise_offsets(pos)
-        sep, coh, count = reynolds_from_offsets(offsets, not_self, spec.flocking)
-        rey_world = sep + coh
-        dist = np.linalg.norm(offsets, axis=-1)
-        np.fill_diagonal(dist, np.inf)
+        teacher = teacher_targets(pos, q, spec.flocking)
         rows["pos"].append(pos.copy())
         rows["vel"].append(state.vel_world_enu.copy())
         rows["q"].append(q.copy())
-        rows["rey_world"].append(rey_world)
-        rows["rey_body"].append(world_to_body(rey_world, quat_to_rotmat(q)))
-        rows["n_nb"].append(count.astype(np.float64))
-        rows["nearest"].append(dist.min(axis=1))
+        rows["rey_world"].append(teacher["rey_world"])
+        rows["rey_body"].append(teacher["rey_body"])
+        rows["n_nb"].append(teacher["n_neighbours"])
+        rows["nearest"].append(teacher["nearest_m"])
         rows["t"].append(np.full(n, t_s))
         done = time.perf_counter()
         for _ in range(rates.substeps):
