@@ -176,6 +176,11 @@ class CameraEmulator:
         """The board unique id `face`'s camera announces in HELLO."""
         return self._camera(face).uid
 
+    def boot_time_s(self, face: str) -> float:
+        """When `face`'s camera last booted, on the emulator's clock: its timestamps' zero."""
+        with self._lock:
+            return self._camera(face).boot_s
+
     def stats(self, face: str) -> CameraStats:
         """A copy of one camera's counters and state."""
         with self._lock:
