@@ -24,8 +24,7 @@ builds report the same serial number for every camera.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
-from types import MappingProxyType
+from dataclasses import dataclass
 from typing import Any
 
 from companion.camera.layout import FACE_NAMES
@@ -115,14 +114,13 @@ class FaceCameraConfig:
 class CameraRigConfig:
     """The six cameras and the rig's freshness rules. Times in seconds (host monotonic clock)."""
 
-    faces: Mapping[str, FaceCameraConfig]  # exactly the six FACE_NAMES; read-only after init
+    faces: Mapping[str, FaceCameraConfig]  # exactly the six FACE_NAMES, stored in that order
     baud: int = DEFAULT_BAUD
     max_age_s: float = 0.3
     max_skew_s: float = 0.15
     reconnect_min_s: float = 0.1
     reconnect_max_s: float = 2.0
     silence_timeout_s: float = 2.0
-    _face_of_camera: Mapping[str, str] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         s = SECTION
@@ -143,16 +141,20 @@ class CameraRigConfig:
                 raise ConfigError(f"{s}.faces.{name}: expected a FaceCameraConfig")
             ordered[name] = face
         self._check_unique(ordered)
-        object.__setattr__(self, "faces", MappingProxyType(ordered))
-        face_of_camera = {face.camera_id: name for name, face in ordered.items()}
-        object.__setattr__(self, "_face_of_camera", MappingProxyType(face_of_camera))
+        object.__setattr__(self, "faces", ordered)  # a plain dict: dataclasses.asdict works
         validate_baud(f"{s}.baud", self.baud)
-        require_range(f"{s}.max_age_s", self.max_age_s, 0.0, 10.0, low_inclusive=False)
-        require_range(f"{s}.max_skew_s", self.max_skew_s, 0.0, 10.0, low_inclusive=False)
-        require_range(f"{s}.reconnect_min_s", self.reconnect_min_s, 0.0, 60.0, low_inclusive=False)
-        require_range(f"{s}.reconnect_max_s", self.reconnect_max_s, self.reconnect_min_s, 60.0)
-        require_range(f"{s}.silence_timeout_s", self.silence_timeout_s, 0.0, 60.0,
-                      low_inclusive=False)  # fmt: skip
+        limits = {"max_age_s": (0.0, 10.0), "max_skew_s": (0.0, 10.0),
+                  "reconnect_min_s": (0.0, 60.0), "reconnect_max_s": (None, 60.0),
+                  "silence_timeout_s": (0.0, 60.0)}  # fmt: skip
+        for key, (low, high) in limits.items():
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ConfigError(f"{s}.{key}: expected a number of seconds, got {value!r}")
+            if low is None:  # reconnect_max_s: at least reconnect_min_s
+                seconds = require_range(f"{s}.{key}", value, self.reconnect_min_s, high)
+            else:
+                seconds = require_range(f"{s}.{key}", value, low, high, low_inclusive=False)
+            object.__setattr__(self, key, seconds)
 
     @staticmethod
     def _check_unique(faces: Mapping[str, FaceCameraConfig]) -> None:
@@ -169,7 +171,19 @@ class CameraRigConfig:
 
     def face_of_camera(self, camera_id: str) -> str | None:
         """The face configured for a board unique id (lowercase hex), or None if not in the map."""
-        return self._face_of_camera.get(camera_id.lower())
+        wanted = camera_id.lower()
+        return next((name for name, f in self.faces.items() if f.camera_id == wanted), None)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The `[cameras]` TOML table (inverse of `from_dict`)."""
+        out: dict[str, Any] = {
+            "faces": {name: {"device": f.device, "camera_id": f.camera_id}
+                      for name, f in self.faces.items()},
+        }  # fmt: skip
+        for key in ("baud", "max_age_s", "max_skew_s", "reconnect_min_s", "reconnect_max_s",
+                    "silence_timeout_s"):  # fmt: skip
+            out[key] = getattr(self, key)
+        return out
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> CameraRigConfig:
