@@ -150,6 +150,7 @@ class FlightRecorder:
         self._queue: queue.Queue[_Item | object] = queue.Queue(maxsize=config.queue_size)
         self._sequences = {topic: itertools.count() for topic, _, _ in CHANNELS}
         self._frame_calls = itertools.count()
+        self._bad_topics: set[str] = set()
         self._thread: threading.Thread | None = None
         self._accepting = False
         self._queued = 0
@@ -224,22 +225,29 @@ class FlightRecorder:
     def record(
         self, topic: str, payload: Mapping[str, Any], *, publish_time_ns: int | None = None
     ) -> bool:
-        """Queue one JSON message on a known topic; False if it was dropped. Never blocks."""
+        """Queue one JSON message on a known topic; False if it was dropped.
+
+        Never blocks and never raises for what it is given: an unknown topic or a payload that
+        cannot be encoded is dropped, counted and logged (once per topic).
+        """
         if not self._accepting:
             if self.config.enabled:
                 self._dropped += 1
             return False
         sequences = self._sequences.get(topic)
-        if sequences is None:
-            raise ValueError(f"unknown topic {topic!r}; topics: {', '.join(self._sequences)}")
+        try:
+            if sequences is None:
+                raise ValueError(f"unknown topic; topics: {', '.join(self._sequences)}")
+            data = jsonable.dumps(payload)
+        except (TypeError, ValueError) as exc:
+            self._dropped += 1
+            if topic not in self._bad_topics:
+                self._bad_topics.add(topic)
+                log.error("recorder: dropping a message on %r: %s", topic, exc)
+            return False
         log_ns = self._clock_ns()
-        item = (
-            topic,
-            log_ns,
-            log_ns if publish_time_ns is None else int(publish_time_ns),
-            next(sequences),
-            jsonable.dumps(payload),
-        )
+        publish_ns = log_ns if publish_time_ns is None else int(publish_time_ns)
+        item = (topic, log_ns, publish_ns, next(sequences), data)
         try:
             self._queue.put_nowait(item)
         except queue.Full:
@@ -260,7 +268,9 @@ class FlightRecorder:
             return False
         image = np.ascontiguousarray(image_u8)
         if image.dtype != np.uint8 or image.ndim != 2:
-            raise ValueError(f"expected a 2-D uint8 image, got {image.dtype} {image.shape}")
+            self._dropped += 1
+            log.error("recorder: not a 2-D uint8 image: %s %s", image.dtype, image.shape)
+            return False
         stamp_ns = self._clock_ns() if publish_time_ns is None else int(publish_time_ns)
         height, width = image.shape
         message = {

@@ -248,8 +248,9 @@ class TelemetryPublisher:
     # --- latest values (control loop) --------------------------------------------------------
 
     def _update(self, kind: str, value: Mapping[str, Any]) -> None:
+        # A shallow copy: the caller may reuse its dict (nested containers must not be mutated).
         with self._lock:
-            self._slots[kind] = (self._clock(), value)
+            self._slots[kind] = (self._clock(), dict(value))
 
     def update_state(self, state: Mapping[str, Any]) -> None:
         self._update("state", state)
@@ -328,7 +329,12 @@ class TelemetryPublisher:
         period_s = 1.0 / self.config.rate_hz
         next_s = self._clock()
         while True:
-            await self.publish_once()
+            try:
+                await self.publish_once()
+            except Exception as exc:  # telemetry must never take the daemon down
+                self._failed += 1
+                self._last_error = f"{type(exc).__name__}: {exc}"
+                log.warning("telemetry cycle failed: %s", self._last_error)
             next_s += period_s
             now = self._clock()
             if next_s < now:  # fell behind (slow link or loaded CPU): restart the grid

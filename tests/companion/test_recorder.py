@@ -201,6 +201,16 @@ def test_full_queue_drops_instead_of_blocking(tmp_path: Path) -> None:
     assert [m.json()["i"] for m in messages(rec.files[0])] == [0, 1, 2, 3]
 
 
+def test_bad_messages_are_dropped_not_raised(tmp_path: Path) -> None:
+    with FlightRecorder(RecorderConfig(directory=tmp_path)) as rec:
+        assert not rec.record(TOPIC_TELEMETRY, {"obj": object()})
+        assert not rec.record("/no/such/topic", {"a": 1})
+        assert not rec.record_frame(np.zeros((64, 384, 3), dtype=np.uint8))
+        assert rec.record(TOPIC_TELEMETRY, {"a": 1})
+    assert rec.stats().dropped == 3
+    assert [m.json() for m in messages(rec.files[0])] == [{"a": 1}]
+
+
 def test_disabled_recorder_writes_nothing(tmp_path: Path) -> None:
     with FlightRecorder(RecorderConfig(directory=tmp_path / "x", enabled=False)) as rec:
         assert not rec.record(TOPIC_TELEMETRY, {"a": 1})
