@@ -17,7 +17,6 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from companion.frames import rotmat_to_quat, wrap_angle
 from companion.validation import require_non_negative, require_positive, require_vector3
 
 FloatArray = NDArray[np.float64]
@@ -25,19 +24,34 @@ FloatArray = NDArray[np.float64]
 GRAVITY_NED_MPS2 = np.array([0.0, 0.0, 9.81])
 
 
-def attitude_from_thrust(body_z_ned: FloatArray, yaw_ned_rad: float) -> FloatArray:
-    """R_ned_frd (3, 3) with body z along `body_z_ned` and Euler yaw exactly `yaw_ned_rad`.
+def _wrap(angle_rad: float) -> float:
+    """Wrap to [-pi, pi) (scalar; this runs at the physics rate)."""
+    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
 
-    PX4's construction: body x is perpendicular to the horizontal "right" axis of the yaw, so its
-    horizontal projection points along the heading.
+
+def attitude_from_thrust(body_z_ned: FloatArray, yaw_ned_rad: float) -> FloatArray:
+    """q NED <- FRD (w, x, y, z) with body z along `body_z_ned` and Euler yaw `yaw_ned_rad`.
+
+    PX4's construction: roll and pitch tilt the body z axis, and the body x axis stays in the
+    vertical plane of the heading (Z-Y-X Euler angles with the given yaw).
     """
-    z = body_z_ned / np.linalg.norm(body_z_ned)
-    right = np.array([-math.sin(yaw_ned_rad), math.cos(yaw_ned_rad), 0.0])
-    x = np.cross(right, z)
-    norm = float(np.linalg.norm(x))
-    heading = np.array([math.cos(yaw_ned_rad), math.sin(yaw_ned_rad), 0.0])
-    x = heading if norm < 1e-9 else x / norm  # body z along "right" (90 deg roll): keep heading
-    return np.column_stack([x, np.cross(z, x), z])
+    zn, ze, zd = (float(c) for c in body_z_ned / np.linalg.norm(body_z_ned))
+    cy, sy = math.cos(yaw_ned_rad), math.sin(yaw_ned_rad)
+    forward, right = cy * zn + sy * ze, -sy * zn + cy * ze  # body z in the heading frame
+    roll = -math.asin(max(-1.0, min(1.0, right)))
+    pitch = math.atan2(forward, zd)
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    ch, sh = math.cos(yaw_ned_rad / 2), math.sin(yaw_ned_rad / 2)
+    q = np.array(
+        [
+            cr * cp * ch + sr * sp * sh,
+            sr * cp * ch - cr * sp * sh,
+            cr * sp * ch + sr * cp * sh,
+            cr * cp * sh - sr * sp * ch,
+        ]
+    )
+    return q if q[0] >= 0.0 else -q
 
 
 @dataclass(frozen=True)
@@ -126,18 +140,17 @@ class FirstOrderVehicle:
         self._pos_ned_m = pos
         self._vel_ned_mps = np.zeros(3)
         self._acc_ned_mps2 = np.zeros(3)
-        self._yaw_ned_rad = float(wrap_angle(yaw_ned_rad))
+        self._yaw_ned_rad = _wrap(float(yaw_ned_rad))
         self._yaw_rate_rad_s = 0.0
 
     def state(self) -> VehicleStateNed:
         """The current state; attitude from the acceleration being flown and the yaw."""
         thrust_ned = self._acc_ned_mps2 - GRAVITY_NED_MPS2  # specific force, points "up"
         body_z_ned = -thrust_ned
-        rot = attitude_from_thrust(body_z_ned, self._yaw_ned_rad)
         return VehicleStateNed(
             pos_ned_m=self._pos_ned_m.copy(),
             vel_ned_mps=self._vel_ned_mps.copy(),
-            q_ned_frd_wxyz=rotmat_to_quat(rot),
+            q_ned_frd_wxyz=attitude_from_thrust(body_z_ned, self._yaw_ned_rad),
             rates_frd_rad_s=np.array([0.0, 0.0, self._yaw_rate_rad_s]),
         )
 
@@ -164,7 +177,7 @@ class FirstOrderVehicle:
         self._pos_ned_m = pos_new
         turn_rad = self._yaw_turn(command, dt_s)
         self._yaw_rate_rad_s = turn_rad / dt_s
-        self._yaw_ned_rad = float(wrap_angle(self._yaw_ned_rad + turn_rad))
+        self._yaw_ned_rad = _wrap(self._yaw_ned_rad + turn_rad)
         return self.state()
 
     def _yaw_turn(self, command: VelocityCommand | None, dt_s: float) -> float:
@@ -173,11 +186,11 @@ class FirstOrderVehicle:
         if command is None:
             return 0.0
         if command.yaw_ned_rad is not None and math.isfinite(command.yaw_ned_rad):
-            error = float(wrap_angle(command.yaw_ned_rad - self._yaw_ned_rad))
+            error = _wrap(command.yaw_ned_rad - self._yaw_ned_rad)
             turn = error * (1.0 - math.exp(-dt_s / p.yaw_tau_s))
         elif command.yaw_rate_rad_s is not None and math.isfinite(command.yaw_rate_rad_s):
             turn = command.yaw_rate_rad_s * dt_s
         else:
             turn = 0.0
         max_turn = p.yaw_rate_max_rad_s * dt_s
-        return float(np.clip(turn, -max_turn, max_turn))
+        return max(-max_turn, min(max_turn, turn))

@@ -12,9 +12,13 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError
-from companion.frames import euler_zyx_from_quat
+from companion.frames import euler_zyx_from_quat, quat_to_rotmat
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
-from sim_harness.hil.emulated_vehicle import FirstOrderVehicle, VelocityCommand
+from sim_harness.hil.emulated_vehicle import (
+    FirstOrderVehicle,
+    VelocityCommand,
+    attitude_from_thrust,
+)
 from sim_harness.hil.px4_logic import LandedState, MavResult, Px4Logic, Px4LogicConfig, Px4Mode
 
 FAST = {"heartbeat_rate_hz": 20.0, "status_rate_hz": 10.0}
@@ -195,6 +199,17 @@ def test_first_order_vehicle_follows_velocity_and_slews_yaw() -> None:
     assert abs(float(roll)) < 1e-3 and abs(float(pitch)) < 1e-3  # cruising: level
 
 
+def test_attitude_tilts_body_z_and_keeps_the_euler_yaw() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        body_z = rng.normal(size=3)
+        body_z[2] = abs(body_z[2]) + 0.3  # thrust with an upward component
+        yaw = float(rng.uniform(-math.pi, math.pi))
+        q = attitude_from_thrust(body_z, yaw)
+        np.testing.assert_allclose(quat_to_rotmat(q)[:, 2], body_z / np.linalg.norm(body_z))
+        assert float(euler_zyx_from_quat(q)[2]) == pytest.approx(yaw)
+
+
 def test_vehicle_never_goes_below_the_ground() -> None:
     vehicle = FirstOrderVehicle(pos_ned_m=(0, 0, -0.5))
     down = VelocityCommand(np.array([0.0, 0.0, 2.0]))
@@ -289,13 +304,13 @@ def test_body_frame_velocity_is_rotated_by_the_heading(wire) -> None:
     flag = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     client.velocity_setpoint(mavlink.MAV_FRAME_BODY_NED, (1.0, 0.0, 0.0), math.pi / 2)
     assert client.command(mavlink.MAV_CMD_DO_SET_MODE, flag, 6, 0) is MavResult.ACCEPTED
-    for _ in range(40):  # stream at 20 Hz for 2 s
+    for _ in range(25):  # stream at 20 Hz for 1.25 s (4 time constants)
         client.velocity_setpoint(mavlink.MAV_FRAME_BODY_NED, (1.0, 0.0, 0.0), math.pi / 2)
         client.receive(lambda m: False, timeout_s=0.05)
     state = emulator.vehicle_state()
     assert state.vel_ned_mps[1] > 0.9  # forward = east
     assert abs(state.vel_ned_mps[0]) < 0.05
-    assert state.pos_ned_m[1] > 1.0
+    assert state.pos_ned_m[1] > 0.6
 
 
 def test_pilot_switch_and_lost_link(wire) -> None:

@@ -1,0 +1,188 @@
+"""The autopilot contract: what the daemon needs from PX4 (`Autopilot`), its data and its config.
+
+Frames and units: PX4's local NED (x north, y east, z down; m, m/s), attitude as the NED <- FRD
+quaternion (w, x, y, z), yaw in radians NED (0 = north, clockwise). Receive times are seconds on
+the adapter's monotonic clock. The MAVSDK implementation is `companion.autopilot.MavsdkAutopilot`
+(which also re-exports everything here).
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from companion.errors import ConfigError
+from companion.sections import require_bool, section_from_dict
+from companion.validation import require_range
+
+FloatArray = NDArray[np.float64]
+T = TypeVar("T")
+SECTION = "autopilot"
+URL_SCHEMES = ("udpin://", "udpout://", "udp://", "tcpin://", "tcpout://", "tcp://", "serial://")
+FAILSAFE_ACTIONS = ("hold", "land")
+
+
+class FlightMode(enum.Enum):
+    """The vehicle's flight mode as MAVSDK decodes it from the heartbeat."""
+
+    UNKNOWN = "unknown"
+    READY = "ready"
+    TAKEOFF = "takeoff"
+    HOLD = "hold"
+    MISSION = "mission"
+    RETURN_TO_LAUNCH = "return_to_launch"
+    LAND = "land"
+    OFFBOARD = "offboard"
+    FOLLOW_ME = "follow_me"
+    MANUAL = "manual"
+    ALTCTL = "altctl"
+    POSCTL = "posctl"
+    ACRO = "acro"
+    STABILIZED = "stabilized"
+    RATTITUDE = "rattitude"
+
+
+class OffboardState(enum.Enum):
+    """INACTIVE: not commanding. ACTIVE: commanding, vehicle seen in OFFBOARD. LOST: it left."""
+
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    LOST = "lost"
+
+
+@dataclass(frozen=True)
+class Stamped(Generic[T]):
+    """A value and when it was received (s, the adapter's monotonic clock)."""
+
+    value: T
+    t_s: float
+
+
+@dataclass(frozen=True)
+class AutopilotTelemetry:
+    """Latest telemetry, each value with its receive time; None until the first one arrives."""
+
+    position_ned_m: Stamped[FloatArray] | None = None  # (3,)
+    velocity_ned_mps: Stamped[FloatArray] | None = None  # (3,)
+    q_ned_frd_wxyz: Stamped[FloatArray] | None = None  # (4,), body FRD -> NED
+    flight_mode: Stamped[FlightMode] | None = None
+    armed: Stamped[bool] | None = None
+    in_air: Stamped[bool] | None = None
+
+
+@dataclass(frozen=True)
+class AutopilotConfig:
+    """The `[autopilot]` section. Times in seconds.
+
+    `arm` / `takeoff`: `connect()` also arms (and takes off to PX4's MIS_TAKEOFF_ALT).
+    `offboard_prestream_s`: how long the first setpoint streams before OFFBOARD is requested
+    (PX4 wants > 1 s). `setpoint_rate_hz`: the rate the daemon sends setpoints at (PX4 needs
+    > 2 Hz; MAVSDK re-sends the last one at 20 Hz regardless). `failsafe_action`: what
+    `failsafe()` (and `close()` while commanding) switches to.
+    """
+
+    url: str = "udpin://127.0.0.1:14540"
+    discovery_timeout_s: float = 10.0
+    health_timeout_s: float = 30.0
+    command_timeout_s: float = 2.0
+    arm: bool = False
+    takeoff: bool = False
+    takeoff_timeout_s: float = 30.0
+    offboard_prestream_s: float = 1.0
+    offboard_confirm_timeout_s: float = 3.0
+    failsafe_action: str = "hold"
+    setpoint_rate_hz: float = 10.0
+    close_timeout_s: float = 2.5
+
+    def __post_init__(self) -> None:
+        s = SECTION
+        if not isinstance(self.url, str) or not self.url.startswith(URL_SCHEMES):
+            raise ConfigError(
+                f"{s}.url: {self.url!r} must start with one of {', '.join(URL_SCHEMES)}"
+            )
+        require_range(
+            f"{s}.discovery_timeout_s", self.discovery_timeout_s, 0.0, 600.0, low_inclusive=False
+        )
+        require_range(
+            f"{s}.health_timeout_s", self.health_timeout_s, 0.0, 600.0, low_inclusive=False
+        )
+        require_range(
+            f"{s}.command_timeout_s", self.command_timeout_s, 0.0, 30.0, low_inclusive=False
+        )
+        require_bool(f"{s}.arm", self.arm)
+        require_bool(f"{s}.takeoff", self.takeoff)
+        if self.takeoff and not self.arm:
+            raise ConfigError(f"{s}.takeoff: needs {s}.arm = true")
+        require_range(
+            f"{s}.takeoff_timeout_s", self.takeoff_timeout_s, 0.0, 300.0, low_inclusive=False
+        )
+        require_range(f"{s}.offboard_prestream_s", self.offboard_prestream_s, 0.0, 10.0)
+        require_range(
+            f"{s}.offboard_confirm_timeout_s",
+            self.offboard_confirm_timeout_s,
+            0.0,
+            30.0,
+            low_inclusive=False,
+        )
+        if self.failsafe_action not in FAILSAFE_ACTIONS:
+            raise ConfigError(
+                f"{s}.failsafe_action: {self.failsafe_action!r} must be one of "
+                + ", ".join(FAILSAFE_ACTIONS)
+            )
+        require_range(f"{s}.setpoint_rate_hz", self.setpoint_rate_hz, 10.0, 100.0)
+        require_range(f"{s}.close_timeout_s", self.close_timeout_s, 0.0, 30.0)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> AutopilotConfig:
+        """From the parsed `[autopilot]` table; unknown keys are refused, naming them."""
+        return section_from_dict(cls, SECTION, data)
+
+
+class Autopilot(Protocol):
+    """What the daemon needs from the flight controller. Every call is bounded in time."""
+
+    async def connect(self) -> None:
+        """Link, discovery, health (local position, home); then arm / take off if configured."""
+
+    async def arm(self) -> None:
+        """Arm the motors."""
+
+    async def takeoff(self) -> None:
+        """Take off and return once the climb is over (no-op when already flying)."""
+
+    async def start_offboard(self, yaw_ned_rad: float | None = None) -> None:
+        """Stream a zero-velocity setpoint, switch to OFFBOARD, return once the vehicle shows it."""
+
+    async def set_velocity_ned(self, vel_ned_mps: ArrayLike, yaw_ned_rad: float) -> None:
+        """Command a NED velocity (3,) m/s and a NED yaw (rad) while offboard is ACTIVE."""
+
+    async def stop_offboard(self) -> None:
+        """Leave OFFBOARD to HOLD (no mode change if the pilot has already taken over)."""
+
+    async def hold(self) -> None:
+        """Switch to HOLD (position hold)."""
+
+    async def land(self) -> None:
+        """Land where the vehicle is."""
+
+    async def failsafe(self) -> None:
+        """The configured failsafe action (hold or land)."""
+
+    def telemetry(self) -> AutopilotTelemetry:
+        """The latest telemetry values with their receive times (never blocks)."""
+
+    @property
+    def offboard_state(self) -> OffboardState:
+        """Whether we are commanding, and whether the vehicle is still following."""
+
+    @property
+    def offboard_lost_reason(self) -> str | None:
+        """Why offboard was lost (None unless `offboard_state` is LOST)."""
+
+    async def close(self) -> None:
+        """Release the link; never hangs. Runs the failsafe first if still commanding."""
