@@ -65,7 +65,12 @@ class Stamped(Generic[T]):
 
 @dataclass(frozen=True)
 class AutopilotTelemetry:
-    """Latest telemetry, each value with its receive time; None until the first one arrives."""
+    """Latest telemetry, each value with its receive time; None until the first one arrives.
+
+    Position, velocity and attitude arrive at the autopilot's stream rates, flight mode and armed
+    with every heartbeat (1 Hz on PX4), in_air only when it changes: judge the link's freshness
+    by the position stamp, not by in_air's.
+    """
 
     position_ned_m: Stamped[FloatArray] | None = None  # (3,)
     velocity_ned_mps: Stamped[FloatArray] | None = None  # (3,)
@@ -156,7 +161,11 @@ class Autopilot(Protocol):
         """Take off and return once the climb is over (no-op when already flying)."""
 
     async def start_offboard(self, yaw_ned_rad: float | None = None) -> None:
-        """Stream a zero-velocity setpoint, switch to OFFBOARD, return once the vehicle shows it."""
+        """Stream a zero-velocity setpoint, switch to OFFBOARD, return once the vehicle shows it.
+
+        After a LOST offboard this takes the vehicle back from the pilot: call it only when the
+        operator asks for it.
+        """
 
     async def set_velocity_ned(self, vel_ned_mps: ArrayLike, yaw_ned_rad: float) -> None:
         """Command a NED velocity (3,) m/s and a NED yaw (rad) while offboard is ACTIVE."""

@@ -279,6 +279,8 @@ class AutopilotEmulator:
                 data, _addr = sock.recvfrom(65536)
             except BlockingIOError:
                 return
+            except ConnectionError:  # an ICMP error from an earlier send: nobody listened yet
+                continue
             with self._lock:
                 alive = self._link_alive
             if not alive:
