@@ -5,7 +5,8 @@ A controller receives, per agent, only what that agent may know:
 - `OwnState`: its own position, velocity, attitude and migration point (row i is agent i's);
 - the senses it declares in `senses`, and only those: `"neighbours"` gives each agent the offsets
   to the agents within its perception radius (a perfect range sensor, the paper's position-based
-  baseline); `"cameras"` (added with the camera rig) gives each agent its own image.
+  baseline); `"cameras"` gives each agent its own 64x384 uint8 camera image, rendered by the
+  rollout at capture time (the control tick) from that agent's pose and attitude.
 
 It returns world-ENU velocity setpoints for all agents in one call, shape (N, 3).
 """
@@ -23,6 +24,7 @@ from companion.flocking import FlockingParams, command_from_offsets
 FloatArray = NDArray[np.float64]
 
 SENSE_NEIGHBOURS = "neighbours"
+SENSE_CAMERAS = "cameras"
 
 
 @dataclass(frozen=True)
@@ -50,6 +52,7 @@ class Observation:
 
     own: OwnState
     neighbours: NeighbourSensing | None = None
+    images: NDArray[np.uint8] | None = None  # (N, 64, 384) row i: agent i's stitched views
 
 
 class Controller(Protocol):

@@ -6,7 +6,7 @@ a single run is drawn as its line.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -156,6 +156,42 @@ def save_paper_figure(columns: dict[str, FlightLog], path: Path) -> Path:
         draw_trajectories(axes[0, col], log, title=f"{title}: {log.controller}, top view")
         draw_distances(axes[1, col], {log.controller: [log]})
         draw_order(axes[2, col], {log.controller: [log]})
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def save_comparison_figure(
+    columns: Mapping[str, Mapping[str, Sequence[FlightLog]]], path: Path, dpi: int = 90
+) -> Path:
+    """The paper's figure for teacher and CNN side by side: one column per experiment (e.g.
+    common, opposing goals); rows: one top view per controller (its first run), then d_min / d_max
+    and the order parameter of every controller (mean line, min-max band over runs).
+
+    `columns` maps a column title to {controller label: runs}; every column has the same labels.
+    """
+    labels = list(next(iter(columns.values())).keys())
+    n_rows = len(labels) + 2
+    fig, axes = plt.subplots(
+        n_rows,
+        len(columns),
+        figsize=(6.5 * len(columns), 4.2 * n_rows + 1.0),
+        dpi=dpi,
+        squeeze=False,
+        gridspec_kw={"height_ratios": [1.4] * len(labels) + [1, 1]},
+    )
+    for col, (title, groups) in enumerate(columns.items()):
+        for row, label in enumerate(labels):
+            runs = groups[label]
+            seed = runs[0].scenario.config.seed
+            draw_trajectories(axes[row, col], runs[0], title=f"{title}: {label}, seed {seed}")
+        draw_distances(axes[len(labels), col], groups)
+        draw_order(axes[len(labels) + 1, col], groups)
+        runs_each = ", ".join(f"{len(v)} {k}" for k, v in groups.items())
+        axes[len(labels), col].set_title(f"{title}: min / max distance ({runs_each} runs)")
+        axes[len(labels) + 1, col].set_title(f"{title}: order parameter")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)

@@ -1,9 +1,14 @@
 """Fly a scenario with a controller until the flock arrives or the time limit; log every step.
 
-The loop, per control step (10 Hz by default): observe -> controller -> `substeps` physics steps of
-the vehicle model (contacts checked at every physics step) -> metrics. The log holds one row per
-control tick, from t = 0 to the final state: positions, velocities, attitudes, the setpoint issued
-at that tick (NaN on the final row: nothing is issued after the run ends) and the per-step metrics.
+The loop, per control step (10 Hz by default): observe (and, for a controller that declares the
+`"cameras"` sense, render every agent's six views at this instant: the capture time) -> controller
+-> `substeps` physics steps of the vehicle model (contacts checked at every physics step) ->
+metrics. The log holds one row per control tick, from t = 0 to the final state: positions,
+velocities, attitudes, the setpoint issued at that tick (NaN on the final row: nothing is issued
+after the run ends) and the per-step metrics.
+`stage_time_s` adds up the wall time of each stage over the flight: `render`, `control` (the
+controller's `command`, inference included), `physics`, plus what a controller reports itself
+through `stage_time_s()` (the CNN controller: `inference`).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from tqdm import tqdm
 
 from sim_harness import metrics
 from sim_harness.controllers import (
+    SENSE_CAMERAS,
     SENSE_NEIGHBOURS,
     Controller,
     Observation,
@@ -28,6 +34,7 @@ from sim_harness.controllers import (
     sense_neighbours,
 )
 from sim_harness.errors import ControllerError
+from sim_harness.render import PyBulletRenderer, Renderer
 from sim_harness.scenarios import Scenario
 from sim_harness.vehicle import VehicleModel, VehicleParams
 from sim_harness.world import SimRates, World
@@ -53,6 +60,7 @@ class FlightLog:
     contacts: list[tuple[int, int, int]] = field(default_factory=list)  # (step, i, j)
     stop_reason: str = "time_limit"
     wall_time_s: float = 0.0
+    stage_time_s: dict[str, float] = field(default_factory=dict)  # stage -> summed wall time
 
     @property
     def n_steps(self) -> int:
@@ -66,6 +74,7 @@ def _observe(
     t: float,
     scenario: Scenario,
     controller: Controller,
+    images: NDArray[np.uint8] | None = None,
 ) -> Observation:
     own = OwnState(
         t, state_pos.copy(), state_vel.copy(), state_q.copy(), scenario.migration_points.copy()
@@ -73,7 +82,15 @@ def _observe(
     neighbours = None
     if SENSE_NEIGHBOURS in controller.senses:
         neighbours = sense_neighbours(own.pos_world_enu, scenario.config.flocking.r_max_m)
-    return Observation(own=own, neighbours=neighbours)
+    return Observation(own=own, neighbours=neighbours, images=images)
+
+
+def _controller_stage_times(controller: Controller) -> dict[str, float]:
+    """What the controller timed itself (`stage_time_s()`, optional), as float seconds."""
+    report = getattr(controller, "stage_time_s", None)
+    if not callable(report):
+        return {}
+    return {str(k): float(v) for k, v in report().items()}
 
 
 def has_arrived(scenario: Scenario, pos_world_enu: FloatArray) -> bool:
@@ -90,9 +107,18 @@ def fly(
     rates: SimRates | None = None,
     vehicle_params: VehicleParams | None = None,
     progress: bool = False,
+    renderer: Renderer | None = None,
 ) -> FlightLog:
-    """Run one flight; returns its log (use `summarize` for the paper's numbers)."""
+    """Run one flight; returns its log (use `summarize` for the paper's numbers).
+
+    A controller that declares the `"cameras"` sense gets every agent's 64x384 image each control
+    step, rendered with `renderer` (default: a `PyBulletRenderer`); no other controller pays for it.
+    """
     rates = rates or SimRates()
+    cameras = SENSE_CAMERAS in controller.senses
+    if cameras and renderer is None:
+        renderer = PyBulletRenderer()
+    stage = {"render": 0.0, "control": 0.0, "physics": 0.0}
     n = scenario.n_agents
     vehicle = VehicleModel(
         vehicle_params or VehicleParams(), scenario.initial_pos_world_enu, scenario.initial_yaw_rad
@@ -122,6 +148,11 @@ def fly(
             rows["sp"].append(setpoint)
 
         for step in range(max_steps):
+            images = None
+            if cameras and renderer is not None:
+                t0 = time.perf_counter()
+                images = renderer.render(world, s.pos_world_enu, vehicle.q_world_body)
+                stage["render"] += time.perf_counter() - t0
             obs = _observe(
                 s.pos_world_enu,
                 s.vel_world_enu,
@@ -129,8 +160,11 @@ def fly(
                 step * rates.control_dt_s,
                 scenario,
                 controller,
+                images,
             )
+            t0 = time.perf_counter()
             setpoint = np.asarray(controller.command(obs), dtype=np.float64)
+            stage["control"] += time.perf_counter() - t0
             if setpoint.shape != (n, 3):
                 raise ControllerError(
                     f"controller {controller.name!r} returned setpoints of shape "
@@ -143,12 +177,14 @@ def fly(
                 )
             record(setpoint)
             touching: set[tuple[int, int]] = set()
+            t0 = time.perf_counter()
             for _ in range(rates.substeps):
                 vehicle.step(setpoint, rates.physics_dt_s)
                 if world.may_touch(s.pos_world_enu):
                     touching.update(world.contacts(s.pos_world_enu, vehicle.q_world_body))
             contacts.extend((step + 1, i, j) for i, j in sorted(touching))
             world.set_poses(s.pos_world_enu, vehicle.q_world_body)
+            stage["physics"] += time.perf_counter() - t0
             bar.update()
             if has_arrived(scenario, s.pos_world_enu):
                 stop_reason = "arrived"
@@ -173,6 +209,7 @@ def fly(
         contacts=contacts,
         stop_reason=stop_reason,
         wall_time_s=wall,
+        stage_time_s={**stage, **_controller_stage_times(controller)},
     )
 
 
@@ -261,6 +298,7 @@ def save_flight(log: FlightLog, out_dir: Path) -> dict[str, Path]:
         "wall_time_s": log.wall_time_s,
         "simulated_s": simulated,
         "real_time_factor": simulated / log.wall_time_s if log.wall_time_s > 0 else None,
+        "stage_time_s": log.stage_time_s,
     }
     paths["timing"].write_text(json.dumps(timing, indent=2) + "\n")
     return paths

@@ -20,3 +20,26 @@ def smoke_dataset(tmp_path_factory: pytest.TempPathFactory, smoke_spec: DatasetS
     root = tmp_path_factory.mktemp("smoke") / "dataset"
     generate(root, smoke_spec, workers=1, progress=False, command="pytest smoke_dataset")
     return root
+
+
+@pytest.fixture(scope="session")
+def untrained_policy_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An untrained ResNet-8 exported as a policy file (`.pt` + sidecar), seeded: deterministic.
+
+    Its head is scaled down so that it outputs speeds of about 1 m/s (an untrained head gives tens
+    of m/s, which the policy treats as a failure and zeroes). Independent of `models/`, so the
+    tests run on a fresh clone.
+    """
+    import torch
+
+    from companion.model_file import base_metadata, save_model
+    from sim_harness.model import build_model, example_input
+
+    torch.manual_seed(0)
+    model = build_model(pixel_mean=120.0, pixel_std=50.0).eval()
+    with torch.no_grad():
+        model.head.weight.mul_(0.04)
+        module = torch.jit.freeze(torch.jit.trace(model, example_input(2)))
+    path = tmp_path_factory.mktemp("policy") / "untrained.pt"
+    save_model(module, {**base_metadata(), "note": "untrained, for tests"}, path)
+    return path
