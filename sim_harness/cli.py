@@ -1,6 +1,7 @@
 """`swarm-sim`: fly scenarios in the pybullet harness and write the paper's figures.
 
-    swarm-sim demo                       # the built-in default: 9 drones, common + opposing goals
+    swarm-sim demo                       # the main job: 9 drones, shipped CNN vs teacher, report
+    swarm-sim experiments --suite paper|generalization|bar --seeds 5 --model M --out DIR
     swarm-sim fly --scenario common --agents 9 --seed 0 --out runs/common
     swarm-sim view --scenario common --seed 0 --step 20 --agent 0   # what one drone sees
     swarm-sim dataset generate --preset quick          # the paper's dataset (resumable)
@@ -22,7 +23,8 @@ from companion.errors import CompanionError, ConfigError
 from companion.flocking import FlockingParams
 from sim_harness.controllers import TeacherController
 from sim_harness.dataset.cli import add_dataset_commands
-from sim_harness.plots import save_flight_figures, save_paper_figure
+from sim_harness.experiments_cli import add_experiment_commands
+from sim_harness.plots import save_flight_figures
 from sim_harness.rollout import FlightLog, fly, save_flight, summarize
 from sim_harness.scenarios import SCENARIOS, ScenarioConfig, build_scenario
 from sim_harness.world import SimRates
@@ -69,12 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_view.add_argument("--agent", type=int, default=0, help="which drone's view")
     p_view.add_argument("--out", type=Path, default=Path("runs/view"), help="output folder")
     _add_flight_options(p_view)
-    p_demo = sub.add_parser(
-        "demo",
-        help="the built-in default: common and opposing goals, 9 drones, figures and summaries",
-    )
-    p_demo.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder")
-    _add_flight_options(p_demo)
+    add_experiment_commands(sub)
     add_dataset_commands(sub)
     return parser
 
@@ -167,18 +164,7 @@ def run(argv: Sequence[str] | None = None) -> int:
             f"summary.json, steps.npz)"
         )
         return 0
-    if args.command == "view":
-        return _view(args, rates)
-    logs: dict[str, FlightLog] = {}
-    for scenario in ("common", "opposing"):
-        logs[scenario] = _fly_one(_config(args, scenario), rates, args.out / scenario, progress)
-        print(_describe(summarize(logs[scenario])))
-    figure = save_paper_figure(logs, args.out / "paper_figure.png")
-    print(
-        f"wrote {figure} and per-flight figures and summaries in {args.out}/common, "
-        f"{args.out}/opposing"
-    )
-    return 0
+    return _view(args, rates)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,0 +1,148 @@
+"""`swarm-sim demo` and `swarm-sim experiments`: teacher and CNN side by side, with a report.
+
+swarm-sim demo                                   # 9 drones, common + opposing goals, 1 seed
+swarm-sim experiments --suite paper --seeds 5 --model models/swarm_cnn.pt --out runs/paper
+swarm-sim experiments --suite generalization --workers 2
+swarm-sim experiments --suite bar                 # 10 evaluation seeds: the issue's bar
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from companion.errors import ModelError
+from sim_harness.suites import (
+    DEFAULT_MODEL_PATH,
+    DEFAULT_SEEDS,
+    EVAL_SEED_BASE,
+    LABELS,
+    SUITES,
+    SuiteConfig,
+)
+from sim_harness.world import SimRates
+
+if TYPE_CHECKING:
+    from sim_harness.experiments import RunRecord
+
+log = logging.getLogger(__name__)
+
+DEMO_SEEDS = 1  # one CNN flight each of common (~45 s wall) and opposing (~80 s) on 2 cores
+HOW_TO_GET_A_MODEL = (
+    "train and export one (swarm-sim train ..., then swarm-sim export ...; see README), "
+    "or pass --model PATH"
+)
+
+
+def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_help: str) -> None:
+    p.add_argument(
+        "--model",
+        type=Path,
+        default=DEFAULT_MODEL_PATH,
+        help=f"exported policy file (default {DEFAULT_MODEL_PATH})",
+    )
+    p.add_argument("--seeds", type=int, default=None, help=seeds_help)
+    p.add_argument(
+        "--seed-base",
+        type=int,
+        default=EVAL_SEED_BASE,
+        help=f"first scenario seed (default {EVAL_SEED_BASE}; evaluation seeds are >= 1000)",
+    )
+    p.add_argument("--out", type=Path, default=default_out, help=f"folder (default {default_out})")
+    p.add_argument("--workers", type=int, default=1, help="flights in parallel (default 1)")
+    p.add_argument(
+        "--low-pass",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="low-pass the CNN output with this cut-off (default: off)",
+    )
+    p.add_argument(
+        "--duration", type=float, default=None, help="cut every flight at this many seconds"
+    )
+    p.add_argument("--no-gradcam", action="store_true", help="skip the Grad-CAM strip")
+    p.add_argument("--quiet", action="store_true", help="no line per flight")
+
+
+def add_experiment_commands(sub: Any) -> None:
+    """Register `demo` and `experiments` on the top-level subparsers."""
+    demo = sub.add_parser(
+        "demo",
+        help="9 drones, common and opposing goals, flown by the shipped CNN and by the teacher",
+        description="The main job: flies the 9-drone common-goal and opposing-goals experiments "
+        "with the shipped model and with the position-based teacher (same seeds) and writes the "
+        "report. A few minutes on 2 cores.",
+    )
+    _add_common_options(demo, Path("runs/demo"), f"seeds per experiment (default {DEMO_SEEDS})")
+    demo.set_defaults(handler=_demo)
+    exp = sub.add_parser(
+        "experiments",
+        help="an experiment suite, teacher and CNN over several seeds, with its report",
+    )
+    exp.add_argument(
+        "--suite",
+        default="paper",
+        choices=sorted(SUITES),
+        help="paper (common, opposing), generalization (N 3 / 12, v_max 4, no goal), bar",
+    )
+    seeds_help = "seeds per experiment (default: " + ", ".join(
+        f"{k} {v}" for k, v in DEFAULT_SEEDS.items()
+    )
+    _add_common_options(exp, Path("runs/experiments"), seeds_help + ")")
+    exp.set_defaults(handler=_experiments)
+
+
+def _describe(record: RunRecord) -> str:
+    s = record.summary
+    end = f"arrived after {s['arrival_time_s']:.1f} s" if s["arrived"] else "time limit"
+    d_min = "n/a" if s["d_min_m"] is None else f"{s['d_min_m']:.2f} m"
+    d_max = "n/a" if s["d_max_m"] is None else f"{s['d_max_m']:.2f} m"
+    return (
+        f"{record.experiment} / {LABELS[record.controller]} / seed {record.seed}: {end}, "
+        f"d_min {d_min}, d_max {d_max}, contacts {s['physical_contacts']} "
+        f"({record.log.wall_time_s:.0f} s wall)"
+    )
+
+
+def _run(args: argparse.Namespace, suite: str, default_seeds: int | None) -> int:
+    if not args.model.exists():
+        raise ModelError(f"no model at {args.model}: {HOW_TO_GET_A_MODEL}")
+    config = SuiteConfig(
+        suite=suite,
+        model_path=args.model,
+        n_seeds=args.seeds if args.seeds is not None else default_seeds,
+        seed_base=args.seed_base,
+        low_pass_cutoff_hz=args.low_pass,
+        workers=args.workers,
+        rates=SimRates(),
+        duration_s=args.duration,
+    )
+    n_flights = 2 * len(config.experiment_list) * len(config.seeds)
+    print(f"{suite}: {n_flights} flights (teacher and CNN, seeds {config.seeds[0]}..)", flush=True)
+
+    def progress(record: RunRecord, done: int, total: int) -> None:
+        if not args.quiet:
+            print(f"[{done}/{total}] {_describe(record)}", flush=True)
+
+    # torch and matplotlib load here, not when the CLI starts.
+    from sim_harness.experiments import run_suite, save_runs
+    from sim_harness.report import write_report
+    from sim_harness.suite_stats import bar_checks
+
+    result = run_suite(config, on_run=progress)
+    save_runs(result, args.out)
+    report = write_report(result, args.out, gradcam=not args.no_gradcam)
+    for check in bar_checks(result):
+        print(f"bar: {'pass' if check.passed else 'FAIL'}: {check.name} ({check.detail})")
+    print(f"report: {report} (flights in {args.out / 'runs'})")
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    return _run(args, "paper", DEMO_SEEDS)
+
+
+def _experiments(args: argparse.Namespace) -> int:
+    return _run(args, args.suite, None)
