@@ -9,6 +9,7 @@ import pytest
 
 from companion.errors import ConfigError, ModelError
 from sim_harness.controllers import SENSE_CAMERAS, Observation, OwnState, TeacherController
+from sim_harness.dataset.runs import teacher_targets
 from sim_harness.render import PyBulletRenderer
 from sim_harness.rollout import fly, save_flight
 from sim_harness.scenarios import ScenarioConfig, build_scenario
@@ -177,6 +178,54 @@ def test_a_cnn_flight_sees_only_its_own_images_rendered_at_capture_time(policy, 
     assert log.stage_time_s["inference"] <= log.stage_time_s["control"]
     timing = json.loads(save_flight(log, tmp_path)["timing"].read_text())
     assert timing["stage_time_s"]["render"] == log.stage_time_s["render"]
+
+
+class PerfectPolicy:
+    """A CNN that predicts its dataset label exactly: the teacher's Reynolds term in body FLU.
+
+    Test-only: it is told the true positions (the label needs them) by `LabelledController`.
+    """
+
+    def __init__(self) -> None:
+        self.labels: np.ndarray | None = None
+
+    def infer_batch(self, images_u8):
+        assert self.labels is not None and len(self.labels) == len(images_u8)
+        return self.labels
+
+
+class LabelledController:
+    """Gives the perfect policy the dataset's label for the current state; flies the CNN law."""
+
+    def __init__(self, params) -> None:
+        self.perfect = PerfectPolicy()
+        self.inner = VisionController(self.perfect, VisionControlConfig.from_flocking(params))
+        self.params = params
+        self.name = "perfect-cnn"
+        self.senses = self.inner.senses
+
+    def reset(self, n_agents: int) -> None:
+        self.inner.reset(n_agents)
+
+    def command(self, observation: Observation):
+        own = observation.own
+        self.perfect.labels = teacher_targets(own.pos_world_enu, own.q_world_body, self.params)[
+            "rey_body"
+        ]
+        return self.inner.command(observation)
+
+
+def test_a_cnn_that_predicts_its_labels_flies_the_teachers_flight() -> None:
+    # Dataset labels are R_world_body^T v_rey; the controller applies R_world_body at the same
+    # attitude and adds the migration term: frames and conventions line up end to end.
+    scenario = build_scenario(
+        ScenarioConfig(name="opposing", n_agents=4, seed=1002, duration_s=2.0)
+    )
+    teacher = fly(scenario, TeacherController(scenario.config.flocking))
+    perfect = fly(scenario, LabelledController(scenario.config.flocking))
+    np.testing.assert_allclose(perfect.setpoint_world_enu, teacher.setpoint_world_enu, atol=1e-9)
+    np.testing.assert_allclose(perfect.pos_world_enu, teacher.pos_world_enu, atol=1e-9)
+    assert np.ptp(teacher.q_world_body[:, :, 3]) > 0.05  # the drones really turned
 
 
 def test_same_seed_same_cnn_flight(policy) -> None:
