@@ -57,22 +57,24 @@ class SuiteResult:
 
 
 @dataclass(frozen=True)
-class _Job:
+class Job:
+    """One flight to fly: an experiment key, a controller ("teacher" or "cnn") and a seed."""
+
     experiment: str
     controller: str
     seed: int
 
 
-def _jobs(config: SuiteConfig) -> list[_Job]:
+def _jobs(config: SuiteConfig) -> list[Job]:
     return [
-        _Job(e.key, c, seed)
+        Job(e.key, c, seed)
         for e in config.experiment_list
         for c in CONTROLLERS
         for seed in config.seeds
     ]
 
 
-def _controller(job: _Job, config: SuiteConfig, policy: Policy | None) -> Controller:
+def _controller(job: Job, config: SuiteConfig, policy: Policy | None) -> Controller:
     flocking = EXPERIMENTS[job.experiment].scenario_config(job.seed).flocking
     if job.controller == "teacher":
         return TeacherController(flocking)
@@ -82,7 +84,7 @@ def _controller(job: _Job, config: SuiteConfig, policy: Policy | None) -> Contro
     return VisionController(policy, law, config.rates.control_dt_s)
 
 
-def fly_job(job: _Job, config: SuiteConfig, policy: Policy | None) -> RunRecord:
+def fly_job(job: Job, config: SuiteConfig, policy: Policy | None) -> RunRecord:
     """Fly one (experiment, controller, seed) of the suite."""
     experiment = EXPERIMENTS[job.experiment]
     scenario = build_scenario(experiment.scenario_config(job.seed, config.duration_s))
@@ -98,13 +100,13 @@ def _init_worker(model_path: Path) -> None:
     _worker_policy = load_policy(model_path, threads=1)
 
 
-def _fly_in_worker(job: _Job, config: SuiteConfig) -> RunRecord:
+def _fly_in_worker(job: Job, config: SuiteConfig) -> RunRecord:
     return fly_job(job, config, _worker_policy)
 
 
 def _run_jobs(
-    jobs: list[_Job], config: SuiteConfig, policy: Policy
-) -> Iterator[tuple[_Job, RunRecord]]:
+    jobs: list[Job], config: SuiteConfig, policy: Policy
+) -> Iterator[tuple[Job, RunRecord]]:
     if config.workers == 1:
         for job in jobs:
             yield job, fly_job(job, config, policy)
@@ -130,7 +132,7 @@ def run_suite(
     policy = load_policy(config.model_path, threads=1)
     try:
         jobs = _jobs(config)
-        records: dict[_Job, RunRecord] = {}
+        records: dict[Job, RunRecord] = {}
         for done, (job, record) in enumerate(_run_jobs(jobs, config, policy), start=1):
             records[job] = record
             if on_run is not None:
