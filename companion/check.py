@@ -1,0 +1,145 @@
+"""`companion check --config FILE`: is this drone ready to run? One line per check, no flying.
+
+Checks, in order: the config file (parse + validation), the model (SHA-256 against the config and
+the sidecar, metadata contract), the six camera devices (exist, are character devices), the
+autopilot link (serial device exists; UDP/TCP are not contacted), the recorder directory
+(writable, free space), the telemetry endpoints and the daemon's safety settings. Nothing is
+opened that the running daemon would hold (no serial port, no MAVLink, no Zenoh session).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+from dataclasses import dataclass
+from pathlib import Path
+
+from companion.errors import CompanionError
+
+OK, WARN, FAIL = "ok", "warn", "FAIL"
+
+
+@dataclass(frozen=True)
+class CheckItem:
+    """One line of the report: what was checked, the verdict (ok, warn, FAIL) and the detail."""
+
+    name: str
+    verdict: str
+    detail: str
+
+
+def _device(path: str) -> tuple[str, str]:
+    """(verdict, detail) for a serial device path."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        return FAIL, f"{path}: {exc.strerror or exc}"
+    target = os.path.realpath(path)
+    shown = path if target == path else f"{path} -> {target}"
+    if not stat.S_ISCHR(mode):
+        return FAIL, f"{shown}: not a character device"
+    return OK, shown
+
+
+def _directory(path: Path) -> tuple[str, str]:
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return FAIL, f"{path}: {existing} is not writable"
+    free_gb = shutil.disk_usage(existing).free / 1e9
+    created = "" if path.exists() else " (will be created)"
+    verdict = WARN if free_gb < 1.0 else OK
+    return verdict, f"{path}{created}, {free_gb:.1f} GB free"
+
+
+def run_checks(config_path: str | Path) -> list[CheckItem]:
+    """Every check's result; stops after the config check if the config is unusable."""
+    from companion.config import load_config  # torch is imported with the policy section
+    from companion.model_file import load_model
+
+    try:
+        config = load_config(config_path)
+    except CompanionError as exc:
+        return [CheckItem("config", FAIL, str(exc))]
+    items = [CheckItem("config", OK, f"{config.source} (drone {config.drone.id})")]
+
+    policy = config.policy
+    try:
+        model = load_model(policy.model_path, expected_sha256=policy.sha256)
+    except CompanionError as exc:
+        items.append(CheckItem("model", FAIL, str(exc)))
+    else:
+        output = model.metadata.get("output", {})
+        pinned = "pinned in the config" if policy.sha256 else "from the sidecar only (not pinned)"
+        items.append(
+            CheckItem(
+                "model",
+                OK if policy.sha256 else WARN,
+                f"{model.path}: sha256 {model.sha256} ({pinned}); "
+                f"format {model.metadata.get('format')}, "
+                f"output {output.get('frame')} {output.get('units')}",
+            )
+        )
+
+    for face, camera in config.cameras.faces.items():
+        verdict, detail = _device(camera.device)
+        items.append(CheckItem(f"camera {face}", verdict, f"{detail} (camera {camera.camera_id})"))
+
+    url = config.autopilot.url
+    if url.startswith("serial://"):
+        device = url.removeprefix("serial://").rsplit(":", 1)[0]
+        verdict, detail = _device(device)
+        items.append(CheckItem("autopilot", verdict, f"{url}: {detail}"))
+    else:
+        items.append(CheckItem("autopilot", OK, f"{url} (network link: not contacted here)"))
+
+    if config.recorder.enabled:
+        verdict, detail = _directory(config.recorder.directory)
+        items.append(CheckItem("recorder", verdict, detail))
+    else:
+        items.append(CheckItem("recorder", WARN, "disabled: no flight log will be written"))
+
+    telemetry = config.telemetry
+    if telemetry.enabled:
+        endpoints = list(telemetry.listen_endpoints) + list(telemetry.connect_endpoints)
+        scouting = "multicast scouting ON" if telemetry.multicast_scouting else "scouting off"
+        items.append(
+            CheckItem(
+                "telemetry",
+                WARN if telemetry.multicast_scouting else OK,
+                f"swarm key {telemetry.key('*')}, endpoints {', '.join(endpoints)}, {scouting}",
+            )
+        )
+    else:
+        items.append(CheckItem("telemetry", WARN, "disabled"))
+
+    d = config.daemon
+    items.append(
+        CheckItem(
+            "daemon",
+            OK if d.engage == "auto" else WARN,
+            f"{d.rate_hz:g} Hz, hover after {d.stale_hover_after_s:g} s stale, "
+            f"{config.autopilot.failsafe_action} after {d.failsafe_after_s:g} s of hover, "
+            f"engage {d.engage}" + (" (never commands the vehicle)" if d.engage == "never" else ""),
+        )
+    )
+    return items
+
+
+def format_report(items: list[CheckItem]) -> str:
+    """The report text, ending with a one-line verdict."""
+    width = max(len(item.name) for item in items)
+    lines = [f"[{item.verdict:>4}] {item.name:<{width}}  {item.detail}" for item in items]
+    failed = [item.name for item in items if item.verdict == FAIL]
+    warned = [item.name for item in items if item.verdict == WARN]
+    if failed:
+        lines.append(f"NOT READY: {len(failed)} problem(s): {', '.join(failed)}")
+    else:
+        lines.append("ready" + (f" ({len(warned)} warning(s))" if warned else ""))
+    return "\n".join(lines)
+
+
+def has_failures(items: list[CheckItem]) -> bool:
+    return any(item.verdict == FAIL for item in items)

@@ -1,0 +1,217 @@
+"""The companion's one TOML file: every section's dataclass, composed and validated on load.
+
+```toml
+[drone]        # id = "drone3"  (names the logs and the telemetry keys swarm/<id>/...)
+[cameras]      # companion.camera.config.CameraRigConfig: six faces (device, camera_id), freshness
+[policy]       # companion.policy.PolicyConfig: model_path (relative: to this file), sha256
+[control]      # companion.control.ControlConfig: migration point, speed cap, altitude band
+[autopilot]    # companion.autopilot_types.AutopilotConfig: MAVSDK url, timeouts, failsafe action
+[recorder]     # companion.recorder.RecorderConfig: directory (relative: to this file), rotation
+[telemetry]    # companion.telemetry.TelemetryConfig: Zenoh endpoints (loopback by default)
+[daemon]       # DaemonConfig below: loop rate, hover and failsafe delays, engagement, watchdog
+```
+
+`[cameras]` and `[policy]` are required (faces and model path have no sensible default); every
+other section and key is optional and defaults to the paper's values. Unknown sections and keys
+are refused, naming them; every error names `section.field` and the allowed range.
+
+Cross-section rules: `[drone].id` is the telemetry drone id (`[telemetry].drone_id`, if given,
+must agree); the daemon sends one setpoint per tick, so `[autopilot].setpoint_rate_hz`, if given,
+must equal `[daemon].rate_hz` (otherwise it is set to it).
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from companion.autopilot_types import AutopilotConfig
+from companion.camera.config import CameraRigConfig
+from companion.control import ControlConfig
+from companion.errors import ConfigError
+from companion.policy import PolicyConfig
+from companion.recorder import RecorderConfig
+from companion.sections import check_keys, require_bool, require_table, section_from_dict
+from companion.telemetry import TelemetryConfig
+from companion.validation import require_range
+
+SECTIONS = ("drone", "cameras", "policy", "control", "autopilot", "recorder", "telemetry", "daemon")
+REQUIRED_SECTIONS = ("cameras", "policy")
+ENGAGE_MODES = ("auto", "never")
+LOG_LEVELS = ("debug", "info", "warning", "error")
+_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+@dataclass(frozen=True)
+class DroneConfig:
+    """The `[drone]` section."""
+
+    id: str = "drone0"  # 1-64 of A-Z a-z 0-9 _ -; log file names and telemetry keys
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.id, str) or not _ID_RE.match(self.id):
+            raise ConfigError(f"drone.id: {self.id!r} must be 1-64 of A-Z a-z 0-9 _ -")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> DroneConfig:
+        return section_from_dict(cls, "drone", data)
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    """The `[daemon]` section. Times in seconds of the monotonic clock.
+
+    - `rate_hz`: control loop rate; one setpoint per tick (PX4 needs > 2 Hz, cameras run at 10).
+    - `stale_hover_after_s`: the command's source image (its oldest tile) older than this, or no
+      valid policy output: hover (zero velocity, yaw held).
+    - `failsafe_after_s`: hovering longer than this: the autopilot's failsafe
+      (`[autopilot].failsafe_action`, Hold or Land), then the daemon stops commanding.
+    - `inference_budget_s`: how long a tick waits for the inference of the image it just took;
+      a slower model's result is used by the next tick (must be shorter than the period).
+    - `engage`: "auto" requests OFFBOARD once the pipeline is healthy (and the vehicle armed, if
+      `engage_requires_armed`); "never" runs everything but never commands (bench tests).
+    - `engage_retry_s`: wait after a refused OFFBOARD request before trying again.
+    - `telemetry_max_age_s`: attitude and position older than this are not used (hover).
+    - `watchdog_max_late_s`: a tick starting later than this after its deadline withholds the
+      systemd WATCHDOG=1 ping (the loop is not healthy).
+    - `shutdown_timeout_s`: bound on each shutdown step (zero setpoint + Hold, closing outputs).
+    """
+
+    rate_hz: float = 10.0
+    stale_hover_after_s: float = 0.3
+    failsafe_after_s: float = 3.0
+    inference_budget_s: float = 0.05
+    engage: str = "auto"
+    engage_requires_armed: bool = True
+    engage_retry_s: float = 2.0
+    telemetry_max_age_s: float = 0.5
+    watchdog_max_late_s: float = 0.5
+    shutdown_timeout_s: float = 5.0
+    log_level: str = "info"
+
+    def __post_init__(self) -> None:
+        s = "daemon"
+        require_range(f"{s}.rate_hz", self.rate_hz, 10.0, 100.0)
+        require_range(
+            f"{s}.stale_hover_after_s", self.stale_hover_after_s, 0.0, 10.0, low_inclusive=False
+        )
+        require_range(
+            f"{s}.failsafe_after_s", self.failsafe_after_s, 0.0, 600.0, low_inclusive=False
+        )
+        require_range(
+            f"{s}.inference_budget_s",
+            self.inference_budget_s,
+            0.0,
+            1.0 / self.rate_hz,
+            high_inclusive=False,
+        )
+        if self.engage not in ENGAGE_MODES:
+            raise ConfigError(f"{s}.engage: {self.engage!r} must be one of auto, never")
+        require_bool(f"{s}.engage_requires_armed", self.engage_requires_armed)
+        require_range(f"{s}.engage_retry_s", self.engage_retry_s, 0.0, 600.0)
+        require_range(
+            f"{s}.telemetry_max_age_s", self.telemetry_max_age_s, 0.0, 10.0, low_inclusive=False
+        )
+        require_range(
+            f"{s}.watchdog_max_late_s", self.watchdog_max_late_s, 0.0, 60.0, low_inclusive=False
+        )
+        require_range(
+            f"{s}.shutdown_timeout_s", self.shutdown_timeout_s, 0.0, 60.0, low_inclusive=False
+        )
+        if self.log_level not in LOG_LEVELS:
+            raise ConfigError(f"{s}.log_level: {self.log_level!r} must be one of {LOG_LEVELS}")
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> DaemonConfig:
+        return section_from_dict(cls, "daemon", data)
+
+
+@dataclass(frozen=True)
+class CompanionConfig:
+    """The whole file, one validated dataclass per section; `source`: the file it came from."""
+
+    cameras: CameraRigConfig
+    policy: PolicyConfig
+    drone: DroneConfig = field(default_factory=DroneConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    daemon: DaemonConfig = field(default_factory=DaemonConfig)
+    source: Path | None = None
+
+
+def config_from_dict(data: Mapping[str, Any], base_dir: Path | None = None) -> CompanionConfig:
+    """Build and validate the config from a parsed TOML document.
+
+    Relative paths (`policy.model_path`, `recorder.directory`) are taken from `base_dir`.
+    """
+    document = require_table("config", data)
+    check_keys("config", document, SECTIONS)
+    for name in REQUIRED_SECTIONS:
+        if name not in document:
+            raise ConfigError(f"{name}: missing section [{name}] (required)")
+
+    def table(name: str) -> Mapping[str, Any]:
+        return require_table(name, document.get(name, {}))
+
+    drone = DroneConfig.from_dict(table("drone"))
+    daemon = DaemonConfig.from_dict(table("daemon"))
+    cameras = CameraRigConfig.from_dict(table("cameras"))
+    policy = PolicyConfig.from_dict(table("policy"), base_dir=base_dir)
+    control = ControlConfig.from_dict(table("control"))
+    recorder = RecorderConfig.from_dict(table("recorder"), base_dir=base_dir)
+
+    autopilot_table = dict(table("autopilot"))
+    rate = autopilot_table.setdefault("setpoint_rate_hz", daemon.rate_hz)
+    if rate != daemon.rate_hz:
+        raise ConfigError(
+            f"autopilot.setpoint_rate_hz: {rate!r} differs from daemon.rate_hz "
+            f"({daemon.rate_hz:g}); the daemon sends one setpoint per tick: set only daemon.rate_hz"
+        )
+    autopilot = AutopilotConfig.from_dict(autopilot_table)
+
+    telemetry_table = dict(table("telemetry"))
+    given_id = telemetry_table.setdefault("drone_id", drone.id)
+    if given_id != drone.id:
+        raise ConfigError(
+            f"telemetry.drone_id: {given_id!r} differs from drone.id ({drone.id!r}); "
+            "set only drone.id"
+        )
+    telemetry = TelemetryConfig.from_dict(telemetry_table)
+    return CompanionConfig(
+        drone=drone,
+        cameras=cameras,
+        policy=policy,
+        control=control,
+        autopilot=autopilot,
+        recorder=recorder,
+        telemetry=telemetry,
+        daemon=daemon,
+    )
+
+
+def load_config(path: str | Path) -> CompanionConfig:
+    """Read, parse and validate a TOML config file (raises `ConfigError` naming the problem)."""
+    source = Path(path).expanduser()
+    try:
+        text = source.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {source}: {exc.strerror or exc}") from exc
+    try:
+        document = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
+    try:
+        config = config_from_dict(document, base_dir=source.resolve().parent)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from exc
+    return replace(config, source=source)

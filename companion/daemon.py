@@ -1,0 +1,400 @@
+"""The onboard daemon: six cameras -> policy -> control law -> PX4 offboard setpoints, supervised.
+
+One asyncio program (`Daemon.run`), tasks under a TaskGroup:
+
+- the six camera links (`companion.camera.serial_link`), each filling a latest-frame slot;
+- the Zenoh telemetry publisher (5 Hz, latest values only);
+- an attitude sampler (50 Hz) that keeps the autopilot's recent attitudes, so each policy output
+  is rotated with the attitude at its image's capture time;
+- the control loop: a fixed rate on the monotonic clock (deadlines on a grid `t0 + k * period`,
+  late ticks skipped, never drifting). One tick:
+
+  1. rig snapshot; if all six faces are fresh and it is a new image, start the inference (on the
+     policy's worker thread) and wait for it at most `inference_budget_s` (a slower result is used
+     by a later tick);
+  2. control law on the latest valid policy output (attitude at capture, current position);
+  3. `HealthMonitor.step` (companion.health) decides: fly, hover, engage, failsafe, release;
+  4. the setpoint goes to the autopilot; then the side outputs (MCAP record, telemetry, sd_notify).
+
+systemd: READY=1 the first time the pipeline is healthy; WATCHDOG=1 from the loop itself, only
+after a tick that started on time (`watchdog_max_late_s`), so a stuck event loop or a dead control
+loop stops the pings and systemd restarts the service. A stale camera or model is not a reason to
+restart: the health state machine hovers, then fails safe (Hold/Land).
+
+SIGTERM/SIGINT: stop the loop, zero velocity, offboard stop (Hold), close the logs and the links,
+return normally (exit 0). Every shutdown step is bounded by `shutdown_timeout_s`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import signal
+import time
+from collections.abc import Awaitable, Callable, Mapping
+from typing import Any, TypeVar
+
+from companion import daemon_reports as reports
+from companion import frames
+from companion.autopilot_types import Autopilot
+from companion.camera.rig import Rig, RigImage, RigSnapshot
+from companion.camera.serial_link import SerialCameraLink, links_from_config, run_links
+from companion.camera.slot import FrameSource
+from companion.config import CompanionConfig
+from companion.control import ControlLaw, ControlOutput
+from companion.daemon_commands import Commander
+from companion.daemon_outputs import Outputs, TickTimes
+from companion.errors import CompanionError
+from companion.health import (
+    Action,
+    HealthConfig,
+    HealthDecision,
+    HealthInputs,
+    HealthMonitor,
+    HealthState,
+)
+from companion.policy import Policy, PolicyOutput
+from companion.pose_history import NAN4, AttitudeHistory, pose_enu
+from companion.recorder import TOPIC_POLICY, FlightRecorder
+from companion.sdnotify import SdNotifier
+from companion.telemetry import TelemetryPublisher
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+ATTITUDE_SAMPLE_S = 0.02
+
+
+class _StopRequested(Exception):
+    """A stop arrived while starting up."""
+
+
+class Daemon:
+    """The supervised pipeline. `await run()` until `request_stop()` or SIGTERM/SIGINT.
+
+    Parts are built from `config` unless given: `policy` (else `Policy.load`), `autopilot` (else
+    `MavsdkAutopilot`), `frame_sources` (else serial links from `[cameras]`), `notifier` (else
+    from `$NOTIFY_SOCKET`). `clock`: monotonic seconds, shared with the links and the adapter.
+    """
+
+    def __init__(
+        self,
+        config: CompanionConfig,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        clock_ns: Callable[[], int] = time.time_ns,
+        policy: Policy | None = None,
+        autopilot: Autopilot | None = None,
+        frame_sources: Mapping[str, FrameSource] | None = None,
+        notifier: SdNotifier | None = None,
+        handle_signals: bool = True,
+    ) -> None:
+        self.config = config
+        d = config.daemon
+        self._clock = clock
+        self._policy = policy
+        self._autopilot = autopilot
+        self._commander: Commander | None = None
+        self._handle_signals = handle_signals
+        self._links: dict[str, SerialCameraLink] = {}
+        if frame_sources is None:
+            self._links = links_from_config(config.cameras, clock=clock)
+            frame_sources = self._links
+        self._rig = Rig(config.cameras, frame_sources)
+        self._law = ControlLaw(config.control, nominal_dt_s=d.period_s)
+        self.health = HealthMonitor(HealthConfig(d.stale_hover_after_s, d.failsafe_after_s))
+        self._attitudes = AttitudeHistory()
+        recorder = FlightRecorder(
+            config.recorder,
+            drone_id=config.drone.id,
+            metadata={"config": str(config.source or "")},
+            clock_ns=clock_ns,
+            monotonic=clock,
+        )
+        telemetry = TelemetryPublisher(config.telemetry, clock=clock, clock_ns=clock_ns)
+        wall_offset_ns = clock_ns() - int(clock() * 1e9)
+        self.outputs = Outputs(
+            recorder,
+            telemetry,
+            notifier if notifier is not None else SdNotifier(),
+            self._links,
+            wall_ns_of=lambda t_s: int(t_s * 1e9) + wall_offset_ns,
+            watchdog_max_late_s=d.watchdog_max_late_s,
+        )
+        self._stop = asyncio.Event()
+        self._stop_reason = ""
+        self._infer_task: asyncio.Task[PolicyOutput] | None = None
+        self._infer_image: RigImage | None = None
+        self._good: tuple[PolicyOutput, RigImage] | None = None  # latest valid output, its image
+        self._last_ok = False
+        self._last_reason = "no policy output yet"
+        self._last_seqs: tuple[int, ...] | None = None
+        self.ticks = 0
+        self.skipped_ticks = 0
+
+    @property
+    def ready(self) -> bool:
+        """READY=1 was sent: the pipeline has been healthy at least once."""
+        return self.outputs.ready_sent
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """Ask the daemon to stop (call from the event loop's thread; signals do)."""
+        if not self._stop.is_set():
+            log.info("stopping: %s", reason)
+            self._stop_reason = reason
+            self._stop.set()
+
+    async def run(self) -> None:
+        """Start everything, fly until stopped, shut down safely. Raises `CompanionError` when
+        a part cannot start (model refused, autopilot not found, recorder directory unusable)."""
+        loop = asyncio.get_running_loop()
+        if self._handle_signals:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.add_signal_handler(sig, self.request_stop, sig.name)
+        keepalive = asyncio.create_task(self._startup_keepalive(), name="watchdog-startup")
+        try:
+            self.outputs.recorder.start()
+            self.outputs.event("starting", "info", {"drone_id": self.config.drone.id})
+            await self.outputs.telemetry.open()
+            if self._policy is None:
+                load = asyncio.to_thread(Policy.load, self.config.policy, clock=self._clock)
+                self._policy = await self._until_stopped(load)
+            await self._supervise(keepalive)
+        except _StopRequested:
+            log.info("stopped while starting up")
+        finally:
+            keepalive.cancel()
+            await self._shutdown()
+            if self._handle_signals:
+                for sig in (signal.SIGTERM, signal.SIGINT):
+                    loop.remove_signal_handler(sig)
+
+    async def _supervise(self, keepalive: asyncio.Task[None]) -> None:
+        try:
+            async with asyncio.TaskGroup() as group:
+                background = [
+                    group.create_task(self.outputs.telemetry.run(), name="telemetry"),
+                    group.create_task(self._sample_attitude(), name="attitude-sampler"),
+                ]
+                if self._links:
+                    links = run_links(self._links)
+                    background.append(group.create_task(links, name="camera-links"))
+                group.create_task(self._main(background, keepalive), name="control")
+        except BaseExceptionGroup as group:
+            first = group.exceptions[0]
+            if len(group.exceptions) == 1 and isinstance(first, CompanionError | _StopRequested):
+                raise first from None  # one clear error for the CLI (e.g. no autopilot found)
+            raise
+
+    async def _main(
+        self, background: list[asyncio.Task[Any]], keepalive: asyncio.Task[None]
+    ) -> None:
+        try:
+            if self._autopilot is None:
+                from companion.autopilot import MavsdkAutopilot  # MAVSDK only where it is used
+
+                self._autopilot = MavsdkAutopilot(self.config.autopilot, clock=self._clock)
+            self._commander = Commander(
+                self._autopilot,
+                clock=self._clock,
+                events=self.outputs.event,
+                timeout_s=self.config.daemon.shutdown_timeout_s,
+                engage_retry_s=self.config.daemon.engage_retry_s,
+                failsafe_action=self.config.autopilot.failsafe_action,
+            )
+            await self._until_stopped(self._autopilot.connect())
+            keepalive.cancel()
+            await self._loop()
+        finally:
+            for task in background:
+                task.cancel()
+
+    async def _until_stopped(self, work: Awaitable[T]) -> T:
+        """`await work`, or cancel it and raise `_StopRequested` when a stop comes first."""
+        task = asyncio.ensure_future(work)
+        stop = asyncio.ensure_future(self._stop.wait())
+        try:
+            await asyncio.wait({task, stop}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stop.cancel()
+        if task.done():
+            return task.result()
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, TimeoutError, CompanionError):
+            await asyncio.wait_for(task, self.config.daemon.shutdown_timeout_s)
+        raise _StopRequested
+
+    async def _startup_keepalive(self) -> None:
+        """WATCHDOG=1 while starting: each start-up step is bounded by its own timeout."""
+        interval = self.outputs.notifier.watchdog_interval_s
+        while interval is not None:
+            self.outputs.notifier.watchdog()
+            await asyncio.sleep(interval)
+
+    async def _sample_attitude(self) -> None:
+        while True:
+            if self._autopilot is not None:
+                self._attitudes.add_from(self._autopilot.telemetry())
+            await asyncio.sleep(ATTITUDE_SAMPLE_S)
+
+    # -- the loop --------------------------------------------------------------------------
+
+    async def _loop(self) -> None:
+        period_s = self.config.daemon.period_s
+        next_s = self._clock()
+        log.info("control loop running at %g Hz", self.config.daemon.rate_hz)
+        while not self._stop.is_set():
+            now_s = self._clock()
+            await self._tick(now_s, now_s - next_s)
+            next_s += period_s
+            behind_s = self._clock() - next_s
+            if behind_s >= 0.0:  # overran: skip the missed deadlines, stay on the grid
+                missed = math.floor(behind_s / period_s) + 1
+                next_s += missed * period_s
+                self.skipped_ticks += missed
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), max(0.0, next_s - self._clock()))
+
+    async def _tick(self, now_s: float, late_s: float) -> None:
+        commander, policy = self._commander, self._policy
+        assert commander is not None and policy is not None
+        self.ticks += 1
+        snapshot = self._rig.snapshot(now_s)
+        new_image = snapshot if isinstance(snapshot, RigImage) else None
+        if new_image is not None and new_image.seqs == self._last_seqs:
+            new_image = None
+        if new_image is not None:
+            self._last_seqs = new_image.seqs
+            if self._infer_task is None:
+                self._infer_image = new_image
+                self._infer_task = asyncio.create_task(policy.infer(new_image.image))
+                budget_s = self.config.daemon.inference_budget_s
+                await asyncio.wait({self._infer_task}, timeout=budget_s)
+        used = self._collect_inference()
+        fresh = used if used is not None and used is new_image else None
+
+        telemetry = commander.autopilot.telemetry()
+        self._attitudes.add_from(telemetry)
+        control, output_ok, problem = self._control(now_s, snapshot, telemetry)
+        decision = self.health.step(
+            HealthInputs(
+                now_s=now_s,
+                output_time_s=None if self._good is None else self._good[1].oldest_receive_time_s,
+                output_ok=output_ok,
+                problem=problem,
+                offboard=commander.offboard_state,
+                engage_allowed=self._engage_allowed(now_s),
+            )
+        )
+        _, _, yaw_enu = pose_enu(telemetry, now_s, self.config.daemon.telemetry_max_age_s)
+        command, sent = await self._act(decision, control, yaw_enu)
+        times = TickTimes(now_s, late_s, self._clock(), new_image, fresh)
+        counters = {
+            "in_state_s": round(now_s - self.health.since_s, 3),
+            "ticks": self.ticks,
+            "skipped_ticks": self.skipped_ticks,
+            "setpoint_errors": commander.setpoint_errors,
+        }
+        self.outputs.tick(
+            decision, command, sent, times, telemetry, commander.offboard_state, counters
+        )
+
+    def _collect_inference(self) -> RigImage | None:
+        """Take a finished inference's result; the image it used, or None if none finished."""
+        task, image = self._infer_task, self._infer_image
+        if task is None or not task.done() or image is None:
+            return None
+        self._infer_task = self._infer_image = None
+        output = task.result()
+        self.outputs.recorder.record(TOPIC_POLICY, reports.policy_payload(output, image))
+        if output.ok:
+            self._good = (output, image)
+            self._last_ok, self._last_reason = True, ""
+        else:
+            self._last_ok, self._last_reason = False, f"policy output refused: {output.reason}"
+        return image
+
+    def _control(
+        self, now_s: float, snapshot: RigSnapshot, telemetry: Any
+    ) -> tuple[ControlOutput | None, bool, str]:
+        """The control law on the latest valid output: (output or None, valid, why not)."""
+        if not self._last_ok or self._good is None:
+            return None, False, self._last_reason
+        max_age_s = self.config.daemon.telemetry_max_age_s
+        pos_enu, _, yaw_enu = pose_enu(telemetry, now_s, max_age_s)
+        output, image = self._good
+        q_capture = self._attitudes.at(image.oldest_capture_time_s, max_age_s)
+        control = self._law.step(
+            output.vel_body_flu, NAN4 if q_capture is None else q_capture, pos_enu, yaw_enu
+        )
+        if not control.ok:
+            return control, False, control.reason
+        return control, True, self._stale_problem(snapshot, now_s)
+
+    def _stale_problem(self, snapshot: RigSnapshot, now_s: float) -> str:
+        """Why no fresh output may be coming (shown only if the output turns out stale)."""
+        if not isinstance(snapshot, RigImage):
+            return f"no fresh rig image: {snapshot.reason}"
+        since = self._policy.in_flight_since if self._policy is not None else None
+        if since is not None:
+            return f"no fresh inference: the model has been running for {now_s - since:.3f} s"
+        return ""
+
+    def _engage_allowed(self, now_s: float) -> bool:
+        d, commander = self.config.daemon, self._commander
+        if d.engage != "auto" or commander is None or not commander.may_engage(now_s):
+            return False
+        if not d.engage_requires_armed:
+            return True
+        armed = commander.autopilot.telemetry().armed
+        return armed is not None and armed.value
+
+    async def _act(
+        self, decision: HealthDecision, control: ControlOutput | None, yaw_enu_rad: float
+    ) -> tuple[ControlOutput | None, bool]:
+        """Carry out the decision; (the command sent or meant to be, whether it was sent)."""
+        commander = self._commander
+        assert commander is not None
+        action = decision.action
+        if action is Action.FLY and control is not None:
+            return control, await commander.send(control)
+        if action in (Action.HOVER, Action.FLY):
+            command = self._law.hover(yaw_enu_rad, decision.reason)
+            return command, await commander.send(command)
+        if action is Action.ENGAGE:
+            finite = math.isfinite(yaw_enu_rad)
+            commander.engage(float(frames.yaw_enu_to_ned(yaw_enu_rad)) if finite else None)
+        elif action is Action.FAILSAFE or decision.state is HealthState.FAILSAFE:
+            commander.failsafe()  # no-op once done; retried after a refusal
+        elif action is Action.RELEASE:
+            await commander.release()
+        return None, False
+
+    # -- shutdown --------------------------------------------------------------------------
+
+    async def _shutdown(self) -> None:
+        """Zero velocity and Hold if commanding, then close everything; each step bounded."""
+        timeout_s = self.config.daemon.shutdown_timeout_s
+        reason = self._stop_reason or "daemon ending"
+        self.outputs.notifier.stopping(f"stopping: {reason}")
+        stop = HealthInputs(self._clock(), None, False, reason, stop_requested=True)
+        self.outputs.transition(self.health.step(stop))
+        commander = self._commander
+        if commander is not None:
+            max_age_s = self.config.daemon.telemetry_max_age_s
+            _, _, yaw_enu = pose_enu(commander.autopilot.telemetry(), self._clock(), max_age_s)
+            await commander.safe_stop(self._law.hover(yaw_enu, "shutdown"))
+        self.outputs.event("stopped", "info", reason)
+        if commander is not None:
+            await commander.guarded("telemetry close", self.outputs.telemetry.close())
+            await commander.guarded("autopilot close", commander.autopilot.close())
+        else:
+            await self.outputs.telemetry.close()
+        if self._policy is not None:
+            await asyncio.to_thread(self._policy.close, min(timeout_s, 2.0))
+        await asyncio.to_thread(self.outputs.recorder.close, timeout_s)
+        self.outputs.notifier.close()
+        log.info("stopped")
