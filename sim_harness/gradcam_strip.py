@@ -2,7 +2,8 @@
 
 The image is rendered again from the flight's log (the pose and attitude of every agent at that
 control step), which is exactly the image the CNN was given at that step: the rollout renders the
-logged poses, and rendering is deterministic. The saliency comes from `sim_harness.gradcam`.
+logged poses, and rendering is deterministic. The saliency comes from `sim_harness.gradcam`, run on
+the eager network whose weights the policy file records (`sim_harness.export.load_eager_model`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.camera.layout import FACE_NAMES, FACE_SIZE_PX
+from companion.errors import ModelError
+from sim_harness.checkpoint import CheckpointError
 from sim_harness.experiments import RunRecord, SuiteResult
+from sim_harness.export import load_eager_model
+from sim_harness.gradcam import TARGETS, blend, grad_cam
 from sim_harness.render import PyBulletRenderer
 from sim_harness.rollout import FlightLog
 from sim_harness.world import World
@@ -53,18 +58,17 @@ def pick_flight(result: SuiteResult) -> RunRecord | None:
 
 def draw_strip(
     image: NDArray[np.uint8],
-    heatmaps: dict[str, NDArray[np.float64]],
+    heatmaps: dict[str, NDArray[np.float32]],
     path: Path,
     title: str,
 ) -> Path:
     """The raw strip, then each heatmap (64, 384) in [0, 1] blended over it; one row each."""
     rows = 1 + len(heatmaps)
-    fig, axes = plt.subplots(rows, 1, figsize=(12, 1.15 * rows + 0.6), dpi=110, squeeze=False)
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 1.95 * rows + 0.3), dpi=100, squeeze=False)
     axes[0, 0].imshow(image, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
     axes[0, 0].set_ylabel("image", fontsize=8)
     for ax, (label, heat) in zip(axes[1:, 0], heatmaps.items(), strict=True):
-        ax.imshow(image, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
-        ax.imshow(heat, cmap="jet", alpha=0.45, vmin=0.0, vmax=1.0, interpolation="bilinear")
+        ax.imshow(blend(image, heat), interpolation="nearest")
         ax.set_ylabel(label, fontsize=8)
     for ax in axes[:, 0]:
         ax.set_xticks([FACE_SIZE_PX * (k + 0.5) for k in range(len(FACE_NAMES))], FACE_NAMES)
@@ -79,15 +83,24 @@ def draw_strip(
     return path
 
 
-def _saliency(model_path: Path, image: NDArray[np.uint8]) -> dict[str, NDArray[np.float64]] | None:
-    """Grad-CAM heatmaps of the policy file for one image; None when it cannot be computed."""
+def saliency(
+    model_path: Path, image: NDArray[np.uint8]
+) -> tuple[dict[str, NDArray[np.float32]], NDArray[np.float32]] | None:
+    """Grad-CAM heatmaps (64, 384) per target ("speed", "x", "y", "z") of the policy file's eager
+    network for one image, and its predicted body-FLU velocity (3,); None when the policy file
+    carries no eager weights (Grad-CAM needs them)."""
     try:
-        from sim_harness import gradcam  # type: ignore[attr-defined]
-    except ImportError:
-        log.warning("Grad-CAM is not available (sim_harness.gradcam): no strip")
+        model, _ = load_eager_model(model_path)
+    except (ModelError, CheckpointError) as exc:
+        log.warning("no Grad-CAM strip: %s", exc)
         return None
-    del gradcam, model_path, image
-    return None
+    heatmaps: dict[str, NDArray[np.float32]] = {}
+    vel = np.zeros(3, dtype=np.float32)
+    for target in TARGETS:
+        cam = grad_cam(model, image, target)
+        heatmaps["|v|" if target == "speed" else f"|v_{target}|"] = cam.heatmap[0]
+        vel = cam.vel_body_flu[0]
+    return heatmaps, vel
 
 
 def save_gradcam_strip(result: SuiteResult, path: Path, time_s: float) -> GradcamStrip | None:
@@ -98,16 +111,21 @@ def save_gradcam_strip(result: SuiteResult, path: Path, time_s: float) -> Gradca
     flight = record.log
     step = min(round(time_s / flight.rates.control_dt_s), flight.n_steps - 1)
     image = capture_image(flight, 0, step)
-    heatmaps = _saliency(result.config.model_path, image)
-    if heatmaps is None:
+    found = saliency(result.config.model_path, image)
+    if found is None:
         return None
+    heatmaps, vel = found
     t = step * flight.rates.control_dt_s
-    title = f"{record.experiment}, seed {record.seed}, agent 0, t = {t:.1f} s"
+    title = (
+        f"{record.experiment}, seed {record.seed}, agent 0, t = {t:.1f} s: CNN output (body FLU) "
+        f"[{vel[0]:+.2f}, {vel[1]:+.2f}, {vel[2]:+.2f}] m/s"
+    )
     draw_strip(image, heatmaps, path, title)
     caption = (
         f"Agent 0's six views ({', '.join(FACE_NAMES)}) at t = {t:.1f} s of the CNN's "
         f"{record.experiment} flight, seed {record.seed}, rendered again from the logged poses "
-        "(the image the CNN was given), and the Grad-CAM at block 2's strided convolution "
-        "(a 4x24 map, bilinearly upsampled) blended over it."
+        "(the image the CNN was given); below, the Grad-CAM at block 2's strided convolution "
+        "(a 4x24 map, bilinearly upsampled; red: most influence) for the predicted speed |v| and "
+        "for each body component (x forward, y left, z up)."
     )
     return GradcamStrip(path, caption)

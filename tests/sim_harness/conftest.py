@@ -24,7 +24,7 @@ def smoke_dataset(tmp_path_factory: pytest.TempPathFactory, smoke_spec: DatasetS
 
 @pytest.fixture(scope="session")
 def untrained_policy_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """An untrained ResNet-8 exported as a policy file (`.pt` + sidecar), seeded: deterministic.
+    """An untrained ResNet-8 exported as a policy file (`.pt`, sidecar, eager weights), seeded.
 
     Its head is scaled down so that it outputs speeds of about 1 m/s (an untrained head gives tens
     of m/s, which the policy treats as a failure and zeroes). Independent of `models/`, so the
@@ -32,14 +32,13 @@ def untrained_policy_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """
     import torch
 
-    from companion.model_file import base_metadata, save_model
-    from sim_harness.model import build_model, example_input
+    from sim_harness.export import export_policy
+    from sim_harness.model import build_model
 
     torch.manual_seed(0)
     model = build_model(pixel_mean=120.0, pixel_std=50.0).eval()
     with torch.no_grad():
         model.head.weight.mul_(0.04)
-        module = torch.jit.freeze(torch.jit.trace(model, example_input(2)))
     path = tmp_path_factory.mktemp("policy") / "untrained.pt"
-    save_model(module, {**base_metadata(), "note": "untrained, for tests"}, path)
+    export_policy(model, path, {"id": "untrained-for-tests"}, None, {"command": "pytest fixture"})
     return path

@@ -189,3 +189,33 @@ def test_demo_flies_both_controllers_and_prints_where_the_report_is(
     data = json.loads((out / "results.json").read_text())
     assert data["seeds"] == [1000]  # the demo's default: one seed
     assert (out / "paper_figure.png").stat().st_size > 0
+
+
+def test_report_shows_the_gradcam_strip_of_an_early_view(paper_suite_dir) -> None:
+    text = (paper_suite_dir / "report.md").read_text()
+    assert "## Grad-CAM" in text and "(gradcam.png)" in text
+    assert "CNN's common flight, seed 1000" in text
+    strip = mpimg.imread(paper_suite_dir / "gradcam.png")
+    assert strip.shape[1] >= 1000 and strip.std() > 0.05  # five rows: image + four maps
+
+
+def test_saliency_explains_what_the_policy_file_predicts(untrained_policy_path, tmp_path) -> None:
+    import numpy as np
+    import torch
+
+    from companion.model_file import base_metadata, save_model
+    from sim_harness.gradcam_strip import saliency
+    from sim_harness.vision_controller import load_policy
+
+    image = np.random.default_rng(5).integers(0, 256, size=(64, 384), dtype=np.uint8)
+    heatmaps, vel = saliency(untrained_policy_path, image)
+    assert list(heatmaps) == ["|v|", "|v_x|", "|v_y|", "|v_z|"]
+    for heat in heatmaps.values():
+        assert heat.shape == (64, 384) and heat.min() >= 0.0 and heat.max() <= 1.0
+    with load_policy(untrained_policy_path) as policy:
+        np.testing.assert_allclose(vel, policy.infer_batch(image[None])[0], atol=1e-4)
+    # A policy file without eager weights gets no strip (and no error).
+    bare = tmp_path / "bare.pt"
+    module = torch.jit.load(str(untrained_policy_path))
+    save_model(module, base_metadata(), bare)
+    assert saliency(bare, image) is None
