@@ -120,14 +120,34 @@ def _figures(result: SuiteResult, out_dir: Path) -> list[tuple[Path, str]]:
     return figures
 
 
+def _find_per_axis(metrics: Any) -> dict[str, Any] | None:
+    """The first `{"per_axis": ..., "overall": ...}` block in the test metrics, if any."""
+    if isinstance(metrics, dict):
+        if isinstance(metrics.get("per_axis"), dict):
+            return metrics
+        for value in metrics.values():
+            found = _find_per_axis(value)
+            if found is not None:
+                return found
+    return None
+
+
 def _model_lines(result: SuiteResult) -> list[str]:
     meta = result.model_metadata
-    lines = [
-        f"- Model: `{result.config.model_path}` (SHA-256 `{result.model_sha256}`)",
-    ]
-    for key in ("dataset_id", "dataset", "training_command", "test_metrics"):
-        if key in meta:
-            lines.append(f"- Model {key.replace('_', ' ')}: `{json.dumps(meta[key])[:300]}`")
+    lines = [f"- Model: `{result.config.model_path}` (SHA-256 `{result.model_sha256}`)"]
+    dataset = meta.get("dataset")
+    if isinstance(dataset, dict) and dataset.get("id"):
+        counts = dataset.get("counts")
+        lines.append(f"- Trained on dataset `{dataset['id']}` (samples per split: {counts})")
+    block = _find_per_axis(meta.get("test_metrics"))
+    if block is not None:
+        r2 = {k: v.get("r2") for k, v in block["per_axis"].items() if isinstance(v, dict)}
+        overall = block.get("overall", {}).get("r2")
+        parts = ", ".join(f"{k} {_num(v)}" for k, v in r2.items())
+        lines.append(f"- Test split R²: {parts}; overall {_num(overall)}")
+    training = meta.get("training")
+    if isinstance(training, dict) and training.get("command"):
+        lines.append(f"- Training command: `{training['command']}`")
     return lines
 
 
