@@ -31,8 +31,9 @@ log = logging.getLogger(__name__)
 
 DEMO_SEEDS = 1  # one CNN flight each of common (~45 s wall) and opposing (~80 s) on 2 cores
 HOW_TO_GET_A_MODEL = (
-    "train and export one (swarm-sim train ..., then swarm-sim export ...; see README), "
-    "or pass --model PATH"
+    "make one with `swarm-sim dataset generate --preset quick`, "
+    "`swarm-sim train --dataset data/quick-s0`, then `swarm-sim export --checkpoint "
+    "runs/train/quick-s0 --dataset data/quick-s0 --out models/swarm_cnn.pt`; or pass --model PATH"
 )
 
 
