@@ -71,7 +71,7 @@ class DaemonConfig:
     - `failsafe_after_s`: hovering longer than this: the autopilot's failsafe
       (`[autopilot].failsafe_action`, Hold or Land), then the daemon stops commanding.
     - `inference_budget_s`: how long a tick waits for the inference of the image it just took;
-      a slower model's result is used by the next tick (must be shorter than the period).
+      a slower model's result is used by a later tick (shorter than the period; None: half).
     - `engage`: "auto" requests OFFBOARD once the pipeline is healthy (and the vehicle armed, if
       `engage_requires_armed`); "never" runs everything but never commands (bench tests).
     - `engage_retry_s`: wait after a refused OFFBOARD request before trying again.
@@ -84,7 +84,7 @@ class DaemonConfig:
     rate_hz: float = 10.0
     stale_hover_after_s: float = 0.3
     failsafe_after_s: float = 3.0
-    inference_budget_s: float = 0.05
+    inference_budget_s: float | None = None
     engage: str = "auto"
     engage_requires_armed: bool = True
     engage_retry_s: float = 2.0
@@ -102,13 +102,14 @@ class DaemonConfig:
         require_range(
             f"{s}.failsafe_after_s", self.failsafe_after_s, 0.0, 600.0, low_inclusive=False
         )
-        require_range(
-            f"{s}.inference_budget_s",
-            self.inference_budget_s,
-            0.0,
-            1.0 / self.rate_hz,
-            high_inclusive=False,
-        )
+        if self.inference_budget_s is not None:
+            require_range(
+                f"{s}.inference_budget_s",
+                self.inference_budget_s,
+                0.0,
+                1.0 / self.rate_hz,
+                high_inclusive=False,
+            )
         if self.engage not in ENGAGE_MODES:
             raise ConfigError(f"{s}.engage: {self.engage!r} must be one of auto, never")
         require_bool(f"{s}.engage_requires_armed", self.engage_requires_armed)
@@ -128,6 +129,12 @@ class DaemonConfig:
     @property
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
+
+    @property
+    def budget_s(self) -> float:
+        """The inference wait per tick: `inference_budget_s`, or half the period."""
+        budget = self.inference_budget_s
+        return self.period_s / 2.0 if budget is None else budget
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> DaemonConfig:

@@ -271,7 +271,7 @@ class Daemon:
             if self._infer_task is None:
                 self._infer_image = new_image
                 self._infer_task = asyncio.create_task(policy.infer(new_image.image))
-                budget_s = self.config.daemon.inference_budget_s
+                budget_s = self.config.daemon.budget_s
                 await asyncio.wait({self._infer_task}, timeout=budget_s)
         used = self._collect_inference()
         fresh = used if used is not None and used is new_image else None

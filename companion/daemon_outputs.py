@@ -143,4 +143,5 @@ class Outputs:
         level = _LEVELS.get(transition.target, "error")
         log.log(logging.getLevelName(level.upper()), "health %s: %s", event, transition.reason)
         self.recorder.record_health(event, level, transition.reason)
-        self.notifier.status(f"{transition.target.value}: {transition.reason}"[:200])
+        reason = f": {transition.reason}" if transition.reason else ""
+        self.notifier.status(f"{transition.target.value}{reason}"[:200])
