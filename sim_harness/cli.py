@@ -24,6 +24,7 @@ from companion.flocking import FlockingParams
 from sim_harness.controllers import TeacherController
 from sim_harness.dataset.cli import add_dataset_commands
 from sim_harness.experiments_cli import add_experiment_commands
+from sim_harness.learn_cli import add_learning_commands
 from sim_harness.plots import save_flight_figures
 from sim_harness.rollout import FlightLog, fly, save_flight, summarize
 from sim_harness.scenarios import SCENARIOS, ScenarioConfig, build_scenario
@@ -73,6 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_flight_options(p_view)
     add_experiment_commands(sub)
     add_dataset_commands(sub)
+    add_learning_commands(sub)
     return parser
 
 

@@ -1,0 +1,144 @@
+"""Mini-batches straight from a dataset split's arrays: index arrays in, tensors out.
+
+No per-sample Python: a batch is one sorted index array taken from the (memory-mapped or in-RAM)
+uint8 image array in one fancy-indexing call (sorted, so a memmap reads forward through the file),
+wrapped with `torch.from_numpy`. A background thread prepares the next batches while the model
+trains on the current one; its queue holds at most `depth` batches.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol, TypeVar
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+T = TypeVar("T")
+
+
+class SplitArrays(Protocol):
+    """What training and evaluation read from a dataset split (see `sim_harness.dataset.store`).
+
+    `images`: uint8 (n, 64, 384); `targets`: float32 (n, 3), body FLU velocity in m/s;
+    `meta`: per-sample columns, each (n,) (e.g. "n_neighbours", "nearest_m").
+    """
+
+    @property
+    def n_samples(self) -> int: ...
+
+    @property
+    def images(self) -> NDArray[np.uint8]: ...
+
+    @property
+    def targets(self) -> NDArray[np.float32]: ...
+
+    @property
+    def meta(self) -> Mapping[str, NDArray[Any]]: ...
+
+
+@dataclass(frozen=True)
+class InMemorySplit:
+    """A split held in plain arrays (a subset loaded into RAM, or synthetic data in tests)."""
+
+    images: NDArray[np.uint8]
+    targets: NDArray[np.float32]
+    meta: Mapping[str, NDArray[Any]]
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.images.shape[0])
+
+
+def subset(split: SplitArrays, limit: int | None, seed: int, ram_max_bytes: int) -> SplitArrays:
+    """The first-come `limit` samples of a seeded permutation (all when `limit` is None).
+
+    The chosen rows are copied into RAM when they fit in `ram_max_bytes`; otherwise the split is
+    returned as is (memmapped) when no limit applies, or the subset's rows are copied anyway
+    (a limit is meant for quick runs).
+    """
+    n = split.n_samples
+    if limit is None or limit >= n:
+        if split.images.nbytes > ram_max_bytes:
+            return split
+        rows = np.arange(n)
+    else:
+        rows = np.sort(np.random.default_rng(seed).permutation(n)[:limit])
+    return InMemorySplit(  # fancy indexing copies: the result no longer touches the memmap
+        images=split.images[rows],
+        targets=np.asarray(split.targets[rows], dtype=np.float32),
+        meta={key: np.asarray(col[rows]) for key, col in split.meta.items()},
+    )
+
+
+def shuffled_batches(n: int, batch_size: int, seed: int, epoch: int) -> list[NDArray[np.int64]]:
+    """Index arrays covering `range(n)` once in a random order fixed by `(seed, epoch)`.
+
+    Each batch is sorted (memmap locality); the last one may be smaller. A fixed per-epoch order
+    makes a resumed run see the same batches as an uninterrupted one.
+    """
+    order = np.random.default_rng([seed, epoch]).permutation(n)
+    return [np.sort(order[i : i + batch_size]) for i in range(0, n, batch_size)]
+
+
+def sequential_batches(n: int, batch_size: int) -> list[slice]:
+    """Contiguous slices covering `range(n)` in order (evaluation)."""
+    return [slice(i, min(i + batch_size, n)) for i in range(0, n, batch_size)]
+
+
+def load_batch(
+    split: SplitArrays, rows: NDArray[np.int64] | slice, pin: bool = False
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(images uint8 (B, 64, 384), targets float32 (B, 3)) as CPU tensors, optionally pinned."""
+    images = torch.from_numpy(np.array(split.images[rows]))  # a writable copy, even of a slice
+    targets = torch.from_numpy(np.array(split.targets[rows], dtype=np.float32))
+    if pin:
+        images, targets = images.pin_memory(), targets.pin_memory()
+    return images, targets
+
+
+def prefetch(items: Iterable[T], depth: int = 2) -> Iterator[T]:
+    """Iterate `items`, produced by a background thread at most `depth` items ahead.
+
+    An exception in the producer is raised in the consumer. Leaving the loop early (break, error)
+    stops the producer and joins it.
+    """
+    slots: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(kind: str, value: Any) -> bool:
+        while not stop.is_set():
+            try:
+                slots.put((kind, value), timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not put("item", item):
+                    return
+        except BaseException as exc:  # handed to the consumer, which re-raises it
+            put("error", exc)
+            return
+        put("done", None)
+
+    worker = threading.Thread(target=produce, name="batch-prefetch", daemon=True)
+    worker.start()
+    try:
+        while True:
+            kind, value = slots.get()
+            if kind == "done":
+                return
+            if kind == "error":
+                raise value
+            yield value
+    finally:
+        stop.set()
+        worker.join()
