@@ -81,6 +81,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/closed_loop_rtf.json"))
     args = parser.parse_args()
     rates = SimRates()
+    load_before = os.getloadavg()[0]
     with load_policy(args.model, threads=args.threads) as policy:
         controller = VisionController(policy, VisionControlConfig(), rates.control_dt_s)
         results = [
@@ -111,6 +112,8 @@ def main() -> None:
             "python": platform.python_version(),
             "numpy": np.__version__,
             "torch": torch.__version__,
+            # Other jobs share the cores: a load above the core count inflates every stage.
+            "load_average_1m": {"before": load_before, "after": os.getloadavg()[0]},
         },
         "results": results,
     }
