@@ -14,9 +14,12 @@ the age of the last message. It only subscribes: it cannot command anything.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import os
 import re
 import shlex
+import signal
 import sys
 import threading
 import time
@@ -86,13 +89,15 @@ async def _run_one(host: str, argv: list[str], timeout_s: float) -> LaunchResult
             stdin=asyncio.subprocess.DEVNULL,
             stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.STDOUT,
+            start_new_session=True,  # its own process group: a timeout kills all of it
         )
     except OSError as exc:
         return LaunchResult(host, tuple(argv), None, f"cannot run {argv[0]}: {exc.strerror}")
     try:
         out, _ = await asyncio.wait_for(process.communicate(), timeout_s)
     except TimeoutError:
-        process.kill()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
         await process.wait()
         return LaunchResult(host, tuple(argv), None, f"no answer within {timeout_s:g} s")
     text = out.decode(errors="replace").strip()
