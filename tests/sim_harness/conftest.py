@@ -26,9 +26,9 @@ def smoke_dataset(tmp_path_factory: pytest.TempPathFactory, smoke_spec: DatasetS
 def untrained_policy_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An untrained ResNet-8 exported as a policy file (`.pt`, sidecar, eager weights), seeded.
 
-    Its head is scaled down so that it outputs speeds of about 1 m/s (an untrained head gives tens
-    of m/s, which the policy treats as a failure and zeroes). Independent of `models/`, so the
-    tests run on a fresh clone.
+    Its head gets random weights scaled so that it outputs speeds of about 1 m/s on random images
+    (the model's initial head is zero; an He-initialized one gives tens of m/s, which the policy
+    treats as a failure and zeroes). Independent of `models/`, so the tests run on a fresh clone.
     """
     import torch
 
@@ -38,7 +38,9 @@ def untrained_policy_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     torch.manual_seed(0)
     model = build_model(pixel_mean=120.0, pixel_std=50.0).eval()
     with torch.no_grad():
-        model.head.weight.mul_(0.04)
+        torch.nn.init.normal_(model.head.weight)
+        probe = torch.randint(0, 256, (16, 64, 384), dtype=torch.uint8)
+        model.head.weight.div_(model(probe).norm(dim=1).median())
     path = tmp_path_factory.mktemp("policy") / "untrained.pt"
     export_policy(model, path, {"id": "untrained-for-tests"}, None, {"command": "pytest fixture"})
     return path
