@@ -84,7 +84,7 @@ def _band(ax: Axes, logs: Sequence[FlightLog], attr: str, colour: str, label: st
             )
 
 
-def draw_distances(ax: Axes, groups: dict[str, Sequence[FlightLog]]) -> None:
+def draw_distances(ax: Axes, groups: Mapping[str, Sequence[FlightLog]]) -> None:
     """d_min and d_max over time for each labelled group of runs (e.g. teacher, CNN)."""
     colours = iter(["tab:blue", "tab:orange", "tab:green", "tab:red"])
     for label, logs in groups.items():
@@ -100,7 +100,7 @@ def draw_distances(ax: Axes, groups: dict[str, Sequence[FlightLog]]) -> None:
     ax.legend(fontsize=8, loc="best")
 
 
-def draw_order(ax: Axes, groups: dict[str, Sequence[FlightLog]]) -> None:
+def draw_order(ax: Axes, groups: Mapping[str, Sequence[FlightLog]]) -> None:
     """Order parameter over time for each labelled group of runs."""
     colours = iter(["tab:blue", "tab:orange", "tab:green", "tab:red"])
     for label, logs in groups.items():
