@@ -46,14 +46,16 @@ def capture_image(flight: FlightLog, agent: int, step: int) -> NDArray[np.uint8]
         image = PyBulletRenderer().render(
             world, flight.pos_world_enu[step], flight.q_world_body[step], [agent]
         )
-    return image[0]
+    first: NDArray[np.uint8] = image[0]
+    return first
 
 
 def pick_flight(result: SuiteResult) -> RunRecord | None:
     """The CNN's common-goal flight of the first seed, else its first flight; None without one."""
     cnn = [r for r in result.runs if r.controller == "cnn"]
     common = [r for r in cnn if r.experiment == "common"]
-    return (common or cnn or [None])[0]
+    chosen = common or cnn
+    return chosen[0] if chosen else None
 
 
 def draw_strip(
