@@ -56,7 +56,7 @@ from companion.health import (
     HealthState,
 )
 from companion.policy import Policy, PolicyOutput
-from companion.pose_history import NAN4, AttitudeHistory, pose_enu
+from companion.pose_history import NAN4, AttitudeHistory, FloatArray, pose_enu
 from companion.recorder import TOPIC_POLICY, FlightRecorder
 from companion.sdnotify import SdNotifier
 from companion.telemetry import TelemetryPublisher
@@ -273,12 +273,13 @@ class Daemon:
                 self._infer_task = asyncio.create_task(policy.infer(new_image.image))
                 budget_s = self.config.daemon.budget_s
                 await asyncio.wait({self._infer_task}, timeout=budget_s)
-        used = self._collect_inference()
-        fresh = used if used is not None and used is new_image else None
+        collected = self._collect_inference()
+        fresh = collected[1] if collected is not None and collected[1] is new_image else None
 
         telemetry = commander.autopilot.telemetry()
         self._attitudes.add_from(telemetry)
-        control, output_ok, problem = self._control(now_s, snapshot, telemetry)
+        pos_enu, yaw_enu = pose_enu(telemetry, now_s, self.config.daemon.telemetry_max_age_s)
+        control, output_ok, problem = self._control(now_s, snapshot, pos_enu, yaw_enu)
         decision = self.health.step(
             HealthInputs(
                 now_s=now_s,
@@ -289,9 +290,11 @@ class Daemon:
                 engage_allowed=self._engage_allowed(now_s),
             )
         )
-        _, _, yaw_enu = pose_enu(telemetry, now_s, self.config.daemon.telemetry_max_age_s)
         command, sent = await self._act(decision, control, yaw_enu)
         times = TickTimes(now_s, late_s, self._clock(), new_image, fresh)
+        if collected is not None:
+            payload = reports.policy_payload(*collected)
+            self.outputs.recorder.record(TOPIC_POLICY, payload)
         counters = {
             "in_state_s": round(now_s - self.health.since_s, 3),
             "ticks": self.ticks,
@@ -302,30 +305,28 @@ class Daemon:
             decision, command, sent, times, telemetry, commander.offboard_state, counters
         )
 
-    def _collect_inference(self) -> RigImage | None:
-        """Take a finished inference's result; the image it used, or None if none finished."""
+    def _collect_inference(self) -> tuple[PolicyOutput, RigImage] | None:
+        """Take a finished inference's result and its image; None if none finished."""
         task, image = self._infer_task, self._infer_image
         if task is None or not task.done() or image is None:
             return None
         self._infer_task = self._infer_image = None
         output = task.result()
-        self.outputs.recorder.record(TOPIC_POLICY, reports.policy_payload(output, image))
         if output.ok:
             self._good = (output, image)
             self._last_ok, self._last_reason = True, ""
         else:
             self._last_ok, self._last_reason = False, f"policy output refused: {output.reason}"
-        return image
+        return output, image
 
     def _control(
-        self, now_s: float, snapshot: RigSnapshot, telemetry: Any
+        self, now_s: float, snapshot: RigSnapshot, pos_enu: FloatArray, yaw_enu: float
     ) -> tuple[ControlOutput | None, bool, str]:
         """The control law on the latest valid output: (output or None, valid, why not)."""
         if not self._last_ok or self._good is None:
             return None, False, self._last_reason
-        max_age_s = self.config.daemon.telemetry_max_age_s
-        pos_enu, _, yaw_enu = pose_enu(telemetry, now_s, max_age_s)
         output, image = self._good
+        max_age_s = self.config.daemon.telemetry_max_age_s
         q_capture = self._attitudes.at(image.oldest_capture_time_s, max_age_s)
         control = self._law.step(
             output.vel_body_flu, NAN4 if q_capture is None else q_capture, pos_enu, yaw_enu
@@ -385,7 +386,7 @@ class Daemon:
         commander = self._commander
         if commander is not None:
             max_age_s = self.config.daemon.telemetry_max_age_s
-            _, _, yaw_enu = pose_enu(commander.autopilot.telemetry(), self._clock(), max_age_s)
+            _, yaw_enu = pose_enu(commander.autopilot.telemetry(), self._clock(), max_age_s)
             await commander.safe_stop(self._law.hover(yaw_enu, "shutdown"))
         self.outputs.event("stopped", "info", reason)
         if commander is not None:

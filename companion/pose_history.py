@@ -2,11 +2,11 @@
 
 The autopilot reports its attitude as PX4's NED <- FRD quaternion, stamped with the receive time
 on the host monotonic clock (the clock the camera links stamp frames with). `AttitudeHistory`
-keeps the last `capacity` samples converted to the control law's world-ENU <- body-FLU quaternion;
-`at(t_s)` returns the sample nearest to `t_s`, or None when none is within `max_gap_s` (no or
-stale telemetry: the daemon then hovers).
+keeps the last `capacity` samples as received; `at(t_s)` returns the one nearest to `t_s`,
+converted to the control law's world-ENU <- body-FLU quaternion, or None when none is within
+`max_gap_s` (no or stale telemetry: the daemon then hovers).
 
-`pose_enu` converts the latest position and attitude for the control law.
+`pose_enu` converts the latest position and heading for the control law.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ NAN4: FloatArray = np.full(4, np.nan)
 
 
 class AttitudeHistory:
-    """Bounded history of (receive time s, q_enu_flu (4,)) samples, oldest first."""
+    """Bounded history of (receive time s, q_ned_frd (4,)) samples, oldest first."""
 
     def __init__(self, capacity: int = 128) -> None:
         self._samples: deque[tuple[float, FloatArray]] = deque(maxlen=capacity)
@@ -41,7 +41,7 @@ class AttitudeHistory:
         q = np.asarray(q_ned_frd_wxyz, dtype=np.float64)
         if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 0.5:
             return False
-        self._samples.append((t_s, frames.quat_ned_frd_to_enu_flu(q)))
+        self._samples.append((t_s, q))
         return True
 
     def add_from(self, telemetry: AutopilotTelemetry) -> bool:
@@ -61,21 +61,24 @@ class AttitudeHistory:
                 break  # older samples only get further away
         if best is None or best_gap > max_gap_s:
             return None
-        return best[1]
+        return frames.quat_ned_frd_to_enu_flu(best[1])
 
 
 def pose_enu(
     telemetry: AutopilotTelemetry, now_s: float, max_age_s: float
-) -> tuple[FloatArray, FloatArray, float]:
-    """(position ENU (3,) m, q_enu_flu (4,), yaw ENU rad) from the latest telemetry.
+) -> tuple[FloatArray, float]:
+    """(position ENU (3,) m, yaw ENU rad) from the latest telemetry, for the control law.
 
     Values older than `max_age_s` (or missing) are NaN, which the control law turns into a hover.
+    Plain float arithmetic (this runs on every tick, between the image and the setpoint).
     """
-    pos = telemetry.position_ned_m
-    q = telemetry.q_ned_frd_wxyz
-    pos_enu = NAN3 if pos is None or now_s - pos.t_s > max_age_s else frames.ned_to_enu(pos.value)
-    if q is None or now_s - q.t_s > max_age_s or not np.all(np.isfinite(q.value)):
-        return pos_enu, NAN4, math.nan
-    q_enu_flu = frames.quat_ned_frd_to_enu_flu(q.value)
-    _, _, yaw = frames.euler_zyx_from_quat(q_enu_flu)
-    return pos_enu, q_enu_flu, float(yaw)
+    pos, q = telemetry.position_ned_m, telemetry.q_ned_frd_wxyz
+    pos_enu = NAN3
+    if pos is not None and now_s - pos.t_s <= max_age_s:
+        north, east, down = (float(v) for v in pos.value)
+        pos_enu = np.array([east, north, -down])
+    if q is None or now_s - q.t_s > max_age_s:
+        return pos_enu, math.nan
+    w, x, y, z = (float(v) for v in q.value)
+    yaw_ned = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))  # nan stays nan
+    return pos_enu, float(frames.wrap_angle(math.pi / 2 - yaw_ned))

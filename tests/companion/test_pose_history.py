@@ -57,12 +57,24 @@ def test_pose_enu_converts_frames_and_drops_stale_values() -> None:
         position_ned_m=Stamped(np.array([1.0, 2.0, -5.0]), 10.0),
         q_ned_frd_wxyz=Stamped(q_ned_yaw(math.pi / 2), 10.0),  # facing east
     )
-    pos, q, yaw = pose_enu(telemetry, now_s=10.2, max_age_s=0.5)
+    pos, yaw = pose_enu(telemetry, now_s=10.2, max_age_s=0.5)
     np.testing.assert_allclose(pos, [2.0, 1.0, 5.0])  # east, north, up
     assert yaw == pytest.approx(0.0, abs=1e-12)  # ENU yaw 0 = east
-    # Body forward (FLU x) is east in the world.
-    np.testing.assert_allclose(frames.quat_to_rotmat(q) @ [1.0, 0.0, 0.0], [1, 0, 0], atol=1e-12)
-    pos, q, yaw = pose_enu(telemetry, now_s=10.6, max_age_s=0.5)
-    assert np.all(np.isnan(pos)) and np.all(np.isnan(q)) and math.isnan(yaw)
-    pos, q, yaw = pose_enu(AutopilotTelemetry(), now_s=0.0, max_age_s=0.5)
+    pos, yaw = pose_enu(telemetry, now_s=10.6, max_age_s=0.5)
     assert np.all(np.isnan(pos)) and math.isnan(yaw)
+    pos, yaw = pose_enu(AutopilotTelemetry(), now_s=0.0, max_age_s=0.5)
+    assert np.all(np.isnan(pos)) and math.isnan(yaw)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_pose_enu_yaw_agrees_with_the_frame_conventions(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    q_ned_frd = frames.quat_normalize(rng.normal(size=4))
+    telemetry = AutopilotTelemetry(q_ned_frd_wxyz=Stamped(q_ned_frd, 0.0))
+    _, yaw = pose_enu(telemetry, now_s=0.0, max_age_s=1.0)
+    q_enu_flu = frames.quat_ned_frd_to_enu_flu(q_ned_frd)
+    assert yaw == pytest.approx(yaw_enu_of(q_enu_flu), abs=1e-9)
+    # ...and the history hands out the same attitude, converted.
+    history = AttitudeHistory()
+    history.add_ned_frd(0.0, q_ned_frd)
+    np.testing.assert_allclose(history.at(0.0, 0.1), q_enu_flu, atol=1e-12)
