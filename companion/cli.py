@@ -3,6 +3,7 @@
 companion run --config FILE            # the daemon (systemd runs this)
 companion check --config FILE          # config, model hash and metadata, devices: ready to fly?
 companion log summary FILE             # what a flight log (MCAP) holds
+companion log recover FILE OUT         # rewrite a log cut short by a crash as a complete file
 companion ground launch --hosts H ...  # systemctl start|stop|... on the drones over SSH
 companion ground monitor --connect E   # live table of the swarm's Zenoh telemetry
 companion conventions                  # frame conventions and flocking defaults this build uses
@@ -45,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
     summary = log.add_parser("summary", help="what a flight log (MCAP) holds")
     summary.add_argument("file", help="an .mcap flight log (also one cut short by a crash)")
     summary.add_argument("--max-events", type=int, default=20, help="health events to list")
+    recover = log.add_parser("recover", help="rewrite a crash-cut log as a complete MCAP file")
+    recover.add_argument("file", help="the .mcap left by a killed daemon")
+    recover.add_argument("out", help="the complete, indexed copy to write (must not exist)")
 
     ground = sub.add_parser("ground", help="ground station").add_subparsers(
         dest="ground_command", required=True
@@ -103,15 +107,21 @@ def cmd_check(config_path: str) -> int:
     return 1 if has_failures(items) else 0
 
 
-def cmd_log_summary(path: str, max_events: int) -> int:
+def cmd_log(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from companion.errors import RecorderError
-    from companion.flight_log import format_summary, summarize_log
+    from companion.flight_log import format_summary, recover_log, summarize_log
 
-    if not Path(path).is_file():
-        raise RecorderError(f"{path}: no such flight log")
-    print(format_summary(summarize_log(path), max_events=max_events))
+    if not Path(args.file).is_file():
+        raise RecorderError(f"{args.file}: no such flight log")
+    if args.log_command == "summary":
+        print(format_summary(summarize_log(args.file), max_events=args.max_events))
+        return 0
+    if Path(args.out).exists():
+        raise RecorderError(f"{args.out}: already exists; choose a new file")
+    count = recover_log(args.file, args.out)
+    print(f"{args.out}: {count} messages recovered from {args.file}")
     return 0
 
 
@@ -153,7 +163,7 @@ def run(argv: Sequence[str] | None = None) -> int:
     if args.command == "check":
         return cmd_check(args.config)
     if args.command == "log":
-        return cmd_log_summary(args.file, args.max_events)
+        return cmd_log(args)
     return cmd_ground(args)
 
 

@@ -72,8 +72,9 @@ class DaemonConfig:
       (`[autopilot].failsafe_action`, Hold or Land), then the daemon stops commanding.
     - `inference_budget_s`: how long a tick waits for the inference of the image it just took;
       a slower model's result is used by a later tick (shorter than the period; None: half).
-    - `engage`: "auto" requests OFFBOARD once the pipeline is healthy (and the vehicle armed, if
-      `engage_requires_armed`); "never" runs everything but never commands (bench tests).
+    - `engage`: "auto" requests OFFBOARD once the pipeline is healthy (and, if
+      `engage_requires_airborne`, the vehicle armed and in the air: on the ground the altitude
+      floor would make it climb); "never" runs everything but never commands (bench tests).
     - `engage_retry_s`: wait after a refused OFFBOARD request before trying again.
     - `telemetry_max_age_s`: attitude and position older than this are not used (hover).
     - `watchdog_max_late_s`: a tick starting later than this after its deadline withholds the
@@ -86,7 +87,7 @@ class DaemonConfig:
     failsafe_after_s: float = 3.0
     inference_budget_s: float | None = None
     engage: str = "auto"
-    engage_requires_armed: bool = True
+    engage_requires_airborne: bool = True
     engage_retry_s: float = 2.0
     telemetry_max_age_s: float = 0.5
     watchdog_max_late_s: float = 0.5
@@ -112,7 +113,7 @@ class DaemonConfig:
             )
         if self.engage not in ENGAGE_MODES:
             raise ConfigError(f"{s}.engage: {self.engage!r} must be one of auto, never")
-        require_bool(f"{s}.engage_requires_armed", self.engage_requires_armed)
+        require_bool(f"{s}.engage_requires_airborne", self.engage_requires_airborne)
         require_range(f"{s}.engage_retry_s", self.engage_retry_s, 0.0, 600.0)
         require_range(
             f"{s}.telemetry_max_age_s", self.telemetry_max_age_s, 0.0, 10.0, low_inclusive=False

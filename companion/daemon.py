@@ -348,10 +348,11 @@ class Daemon:
         d, commander = self.config.daemon, self._commander
         if d.engage != "auto" or commander is None or not commander.may_engage(now_s):
             return False
-        if not d.engage_requires_armed:
+        if not d.engage_requires_airborne:
             return True
-        armed = commander.autopilot.telemetry().armed
-        return armed is not None and armed.value
+        telemetry = commander.autopilot.telemetry()
+        armed, in_air = telemetry.armed, telemetry.in_air
+        return armed is not None and armed.value and in_air is not None and in_air.value
 
     async def _act(
         self, decision: HealthDecision, control: ControlOutput | None, yaw_enu_rad: float

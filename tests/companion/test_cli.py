@@ -119,6 +119,27 @@ def test_log_summary_of_a_recorded_flight(
     assert "no such flight log" in capsys.readouterr().err
 
 
+def test_log_recover_completes_a_file_cut_by_a_crash(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    recorder = FlightRecorder(RecorderConfig(directory=tmp_path / "logs"), drone_id="d4")
+    with recorder:
+        for index in range(20):
+            recorder.record(TOPIC_SETPOINT, {"vel_ned": [float(index), 0.0, 0.0]})
+    (log,) = recorder.files
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(log.read_bytes()[: log.stat().st_size - 200])  # footer and summary gone
+    assert cli.main(["log", "summary", str(cut)]) == 0
+    assert "INCOMPLETE" in capsys.readouterr().out
+    out = tmp_path / "recovered.mcap"
+    assert cli.main(["log", "recover", str(cut), str(out)]) == 0
+    assert "20 messages recovered" in capsys.readouterr().out
+    assert cli.main(["log", "summary", str(out)]) == 0
+    assert f"{out}: complete" in capsys.readouterr().out
+    assert cli.main(["log", "recover", str(cut), str(out)]) == 2  # never overwrites
+    assert "already exists" in capsys.readouterr().err
+
+
 def test_conventions_still_there(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["conventions"]) == 0
     assert "NED" in capsys.readouterr().out

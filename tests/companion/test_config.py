@@ -89,7 +89,7 @@ def test_absolute_paths_stay_as_written(tmp_path: Path) -> None:
         ("[daemon]\nrate_hz = 20.0\ninference_budget_s = 0.05\n", r"\[0, 0\.05\)"),
         ('[daemon]\nengage = "maybe"\n', r"daemon\.engage: 'maybe' must be one of auto, never"),
         ("[daemon]\nfailsafe_after = 3\n", r"daemon: unknown key\(s\) 'failsafe_after'"),
-        ("[daemon]\nengage_requires_armed = 1\n", r"daemon\.engage_requires_armed"),
+        ("[daemon]\nengage_requires_airborne = 1\n", r"daemon\.engage_requires_airborne"),
         ('[drone]\nid = "a b"\n', r"drone\.id: 'a b' must be"),
         ("[wings]\nspan = 1\n", r"config: unknown key\(s\) 'wings'"),
         ("[cameras.extra]\n", r"cameras: unknown key\(s\) 'extra'"),

@@ -343,6 +343,33 @@ def test_a_long_hover_escalates_to_the_failsafe_and_stays_there(
     asyncio.run(body())
 
 
+def test_a_vehicle_on_the_ground_is_never_engaged(
+    tmp_path: Path, cameras: CameraEmulator, make_policy_file: Any
+) -> None:
+    """Healthy pipeline (READY), but disarmed on the ground: no OFFBOARD request, no setpoint."""
+    config = EmulatorConfig(free_udp_port(), heartbeat_rate_hz=20.0)
+    with AutopilotEmulator(config) as grounded:
+        doc = document(
+            tmp_path, cameras, grounded, make_policy_file("constant", BODY_CMD_FLU), free_tcp_port()
+        )
+        daemon = Daemon(config_from_dict(doc), handle_signals=False)
+
+        async def body() -> None:
+            run = asyncio.create_task(daemon.run())
+            try:
+                await until(lambda: daemon.ready, 10.0, "READY")
+                await asyncio.sleep(1.0)
+                assert daemon.health.state is HealthState.STARTING
+                assert daemon.health.reason == "pipeline healthy, not engaged"
+            finally:
+                daemon.request_stop("test over")
+                await asyncio.wait_for(run, 15.0)
+
+        asyncio.run(body())
+        assert not [c for c in grounded.commands() if c.command == DO_SET_MODE]
+        assert not grounded.setpoints() and grounded.mode is Px4Mode.HOLD
+
+
 def test_a_model_with_the_wrong_hash_is_refused_before_anything_flies(
     tmp_path: Path, cameras: CameraEmulator, px4: AutopilotEmulator, make_policy_file: Any
 ) -> None:
