@@ -4,7 +4,8 @@
 
 Per drone: six pty cameras (CameraEmulator, recorded frames at 10 Hz) and the PX4 emulator run in
 this process; `companion run --config FILE` runs as a child process with a DroNet-like ResNet-8
-policy (the paper's layer sizes, random weights, ~318k parameters), the flight recorder and Zenoh
+policy (the paper's layer sizes, random weights, ~318k parameters; scripted, frozen, channels_last
+as an export should be), the flight recorder and Zenoh
 telemetry on. Once the vehicle is in OFFBOARD, the child's CPU time is read from /proc over
 `--seconds`; then SIGTERM, and the latencies are read back from the child's own MCAP log:
 
@@ -75,6 +76,7 @@ class ResNet8(nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = (images.to(torch.float32).unsqueeze(1) - 110.0) / 60.0
+        x = x.contiguous(memory_format=torch.channels_last)  # ~2x faster convolutions on CPU
         x = self.blocks(self.pool(self.stem(x)))
         x = torch.relu(x).flatten(1)
         return 0.01 * self.fc(self.drop(x))
@@ -90,6 +92,7 @@ class Constant(nn.Module):
 def save_policy(path: Path, kind: str = "resnet8") -> int:
     torch.manual_seed(0)
     model = (ResNet8() if kind == "resnet8" else Constant()).eval()
+    model = model.to(memory_format=torch.channels_last)
     # Scripted and frozen (BatchNorm folded). optimize_for_inference would be faster, but its
     # modules do not load back with torch.jit.load in torch 2.13 ("attribute 'value' undefined").
     scripted = torch.jit.freeze(torch.jit.script(model))
@@ -185,6 +188,10 @@ def main() -> None:
         "--policy", choices=("resnet8", "constant"), default="resnet8",
         help="constant: a free model, to measure the daemon's own share",
     )  # fmt: skip
+    parser.add_argument(
+        "--nice", type=int, default=-5,
+        help="niceness of the daemons (the systemd unit's Nice=-5; needs root, else 0)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks/results/daemon_latency.json")
     args = parser.parse_args()
 
@@ -205,8 +212,13 @@ def main() -> None:
                 [sys.executable, "-m", "companion.cli", "run", "--config", str(config)],
                 cwd=REPO,
                 stdout=subprocess.DEVNULL,
-                stderr=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
             )
+            try:
+                os.setpriority(os.PRIO_PROCESS, child.pid, args.nice)
+                nice = args.nice
+            except PermissionError:
+                nice = os.getpriority(os.PRIO_PROCESS, child.pid)
             drones.append(
                 {"folder": folder, "cameras": cameras, "px4": px4, "child": child, "index": index}
             )
@@ -242,7 +254,7 @@ def main() -> None:
         },
         "policy": {
             "architecture": (
-                "ResNet-8 (DroNet-like), TorchScript frozen"
+                "ResNet-8 (DroNet-like), TorchScript scripted + frozen, channels_last"
                 if args.policy == "resnet8"
                 else "constant output (no computation)"
             ),
@@ -250,6 +262,7 @@ def main() -> None:
             "threads": 1,
         },
         "rate_hz": 10.0,
+        "daemon_nice": nice,
         "measured_s": round(wall, 2),
         "drones": [],
     }
@@ -267,8 +280,8 @@ def main() -> None:
     args.out.write_text(json.dumps(results, indent=2) + "\n")
 
     loads = results["machine"]["load_average_1min_before_after"]
-    print(f"{args.drones} daemon(s) at 10 Hz for {wall:.1f} s on {os.cpu_count()} CPUs, "
-          f"load average {loads[0]} -> {loads[1]}")  # fmt: skip
+    print(f"{args.drones} daemon(s) at 10 Hz, nice {nice}, for {wall:.1f} s on {os.cpu_count()} "
+          f"CPUs, load average {loads[0]} -> {loads[1]}")  # fmt: skip
     header = (
         "drone  tick p50/p99/max ms     image age p50/p99 ms  inference p50/p99 ms  CPU %  RSS MB"
     )
