@@ -19,6 +19,7 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import signal
 import sys
 from collections.abc import Sequence
 from dataclasses import asdict
@@ -87,7 +88,13 @@ def conventions_text() -> str:
     return "\n".join(lines)
 
 
+def _stop_before_start(signum: int, frame: object) -> None:
+    raise SystemExit(0)  # nothing commands the vehicle yet: a clean exit
+
+
 def cmd_run(config_path: str) -> int:
+    # Until the daemon installs its own handlers (after the imports), SIGTERM is a clean exit.
+    signal.signal(signal.SIGTERM, _stop_before_start)
     from companion.autopilot import forward_mavsdk_logs
     from companion.config import load_config
     from companion.daemon import Daemon

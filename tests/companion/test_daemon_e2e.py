@@ -370,6 +370,28 @@ def test_a_vehicle_on_the_ground_is_never_engaged(
         assert not grounded.setpoints() and grounded.mode is Px4Mode.HOLD
 
 
+def test_a_stop_while_searching_for_the_autopilot_ends_promptly(
+    tmp_path: Path, cameras: CameraEmulator, px4: AutopilotEmulator, make_policy_file: Any
+) -> None:
+    doc = document(tmp_path, cameras, px4, make_policy_file("constant"), free_tcp_port())
+    doc["autopilot"].update(url=f"udpin://127.0.0.1:{free_udp_port()}", discovery_timeout_s=3.0)
+    daemon = Daemon(config_from_dict(doc), handle_signals=False)
+
+    async def body() -> float:
+        run = asyncio.create_task(daemon.run())
+        await asyncio.sleep(0.5)  # MAVSDK is waiting for a heartbeat that never comes
+        start = time.monotonic()
+        daemon.request_stop("test over")
+        await asyncio.wait_for(run, 10.0)
+        return time.monotonic() - start
+
+    took_s = asyncio.run(body())
+    assert took_s < 4.0  # the adapter waits at most close_timeout_s (2.5 s) for MAVSDK
+    assert daemon.health.state is HealthState.STOPPING
+    events = [m.json()["event"] for m in LogReader(daemon_log(tmp_path)).messages()]
+    assert events[-1] == "stopped"
+
+
 def test_a_model_with_the_wrong_hash_is_refused_before_anything_flies(
     tmp_path: Path, cameras: CameraEmulator, px4: AutopilotEmulator, make_policy_file: Any
 ) -> None:
