@@ -103,7 +103,8 @@ class Daemon:
             frame_sources = self._links
         self._rig = Rig(config.cameras, frame_sources)
         self._law = ControlLaw(config.control, nominal_dt_s=d.period_s)
-        self.health = HealthMonitor(HealthConfig(d.stale_hover_after_s, d.failsafe_after_s))
+        health_config = HealthConfig(d.stale_hover_after_s, d.failsafe_after_s)
+        self.health = HealthMonitor(health_config, start_s=clock())
         self._attitudes = AttitudeHistory()
         recorder = FlightRecorder(
             config.recorder,
@@ -389,6 +390,8 @@ class Daemon:
             max_age_s = self.config.daemon.telemetry_max_age_s
             _, yaw_enu = pose_enu(commander.autopilot.telemetry(), self._clock(), max_age_s)
             await commander.safe_stop(self._law.hover(yaw_enu, "shutdown"))
+        if self._infer_task is not None:
+            self._infer_task.cancel()  # the model thread itself is abandoned by policy.close
         self.outputs.event("stopped", "info", reason)
         if commander is not None:
             await commander.guarded("telemetry close", self.outputs.telemetry.close())
