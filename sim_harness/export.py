@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,13 @@ from companion.frames import BODY_FRAME, WORLD_FRAME
 from companion.model_file import base_metadata, load_model, save_model
 from sim_harness.checkpoint import load_checkpoint, model_from_checkpoint
 from sim_harness.evaluate import PolicyModule
-from sim_harness.model import DroNet, build_model, count_parameters, example_input
+from sim_harness.model import (
+    DroNet,
+    build_model,
+    count_parameters,
+    example_input,
+    to_channels_last,
+)
 
 DEFAULT_MODEL_PATH = Path("models/policy.pt")
 WEIGHTS_SUFFIX = ".weights.pt"
@@ -52,10 +59,13 @@ class ExportResult:
 
 def to_torchscript(model: DroNet) -> torch.jit.ScriptModule:
     """Traced and frozen CPU copy of `model` in eval mode, channels_last."""
-    cpu = copy.deepcopy(model).to("cpu", memory_format=torch.channels_last).eval()
-    with torch.no_grad():
-        traced = torch.jit.trace(cpu, example_input(1))
-    return torch.jit.freeze(traced)
+    cpu = to_channels_last(copy.deepcopy(model)).eval()
+    with torch.no_grad(), warnings.catch_warnings():
+        # TorchScript is the drone's format by design; torch 2.13 flags it as deprecated.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        traced = torch.jit.trace(cpu, example_input(1))  # type: ignore[no-untyped-call]
+        frozen: torch.jit.ScriptModule = torch.jit.freeze(traced)
+    return frozen
 
 
 def weights_path_for(policy_path: Path) -> Path:
@@ -138,7 +148,7 @@ def export_policy(
         check_images_u8 = torch.randint(
             0, 256, tuple(example_input(16).shape), dtype=torch.uint8, generator=generator
         )
-    cpu = copy.deepcopy(model).to("cpu", memory_format=torch.channels_last).eval()
+    cpu = to_channels_last(copy.deepcopy(model)).eval()
     with torch.inference_mode():
         diff = float((scripted(check_images_u8) - cpu(check_images_u8)).abs().max())
     if not diff <= EXPORT_TOLERANCE_MPS:

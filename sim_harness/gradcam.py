@@ -51,11 +51,14 @@ class GradCamResult:
 
 def _scalar_target(vel: torch.Tensor, target: str) -> torch.Tensor:
     """Sum over the batch of the chosen scalar (the samples do not interact in eval mode)."""
+    scalar: torch.Tensor
     if target == "speed":
         direction = (vel / vel.norm(dim=1, keepdim=True).clamp_min(1e-9)).detach()
-        return (vel * direction).sum()
-    k = "xyz".index(target)
-    return (vel[:, k] * torch.sign(vel[:, k]).detach()).sum()
+        scalar = (vel * direction).sum()
+    else:
+        k = "xyz".index(target)
+        scalar = (vel[:, k] * torch.sign(vel[:, k]).detach()).sum()
+    return scalar
 
 
 def grad_cam(model: DroNet, images_u8: ArrayLike, target: str = "speed") -> GradCamResult:
@@ -113,7 +116,7 @@ def blend(
     gray = cv2.cvtColor(np.asarray(image_u8, dtype=np.uint8), cv2.COLOR_GRAY2RGB)
     heat = np.clip(np.rint(np.asarray(heatmap) * 255.0), 0, 255).astype(np.uint8)
     colours = cv2.cvtColor(cv2.applyColorMap(heat, cv2.COLORMAP_JET), cv2.COLOR_BGR2RGB)
-    return cv2.addWeighted(colours, alpha, gray, 1.0 - alpha, 0.0)
+    return np.asarray(cv2.addWeighted(colours, alpha, gray, 1.0 - alpha, 0.0), dtype=np.uint8)
 
 
 def save_gradcam_png(

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from typing import cast
 
 import torch
 from torch import nn
@@ -47,6 +48,9 @@ _TRUNC_NORMAL_STD = 0.8796256610342398
 
 class Standardize(nn.Module):
     """uint8 (B, H, W) -> float32 (B, 1, H, W), `(x - pixel_mean) / pixel_std`, channels_last."""
+
+    pixel_mean: torch.Tensor
+    pixel_std: torch.Tensor
 
     def __init__(self, pixel_mean: float, pixel_std: float) -> None:
         super().__init__()
@@ -77,7 +81,8 @@ class ResidualBlock(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         main = self.conv_strided(torch.relu(self.bn1(x)))
         main = self.conv(torch.relu(self.bn2(main)))
-        return main + self.shortcut(x)
+        out: torch.Tensor = main + self.shortcut(x)
+        return out
 
 
 class DroNet(nn.Module):
@@ -113,7 +118,8 @@ class DroNet(nn.Module):
         x = self.pool(self.conv1(self.standardize(images_u8)))
         x = self.bn_out(self.block3(self.block2(self.block1(x))))
         x = torch.flatten(torch.relu(x), 1)
-        return self.head(self.dropout(x))
+        vel_body_flu: torch.Tensor = self.head(self.dropout(x))
+        return vel_body_flu
 
 
 def init_weights(model: nn.Module) -> None:
@@ -134,8 +140,13 @@ def build_model(
     pixel_mean: float, pixel_std: float, dropout: float = 0.5, device: str | torch.device = "cpu"
 ) -> DroNet:
     """A freshly initialized `DroNet` on `device`, channels_last (seed torch first)."""
-    model = DroNet(pixel_mean, pixel_std, dropout)
-    return model.to(device=torch.device(device), memory_format=torch.channels_last)
+    return to_channels_last(DroNet(pixel_mean, pixel_std, dropout), device)
+
+
+def to_channels_last(model: DroNet, device: str | torch.device = "cpu") -> DroNet:
+    """`model` moved to `device` with its 4-D weights in channels_last layout (in place)."""
+    moved = model.to(device=torch.device(device), memory_format=torch.channels_last)  # type: ignore[call-overload]
+    return cast(DroNet, moved)
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -143,7 +154,7 @@ def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
-def decayed_parameters(model: nn.Module) -> Iterable[tuple[str, nn.Parameter]]:
+def decayed_parameters(model: nn.Module) -> Iterable[tuple[str, torch.Tensor]]:
     """The conv and linear weights: the `w` of the paper's `(lambda / 2) ||w||^2` term."""
     for module_name, module in model.named_modules():
         if isinstance(module, nn.Conv2d | nn.Linear):

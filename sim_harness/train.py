@@ -20,11 +20,11 @@ validation loss), `metrics.jsonl` (one JSON object per epoch), `learning_curve.p
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
+import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,8 +32,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from companion.errors import ConfigError
-from companion.validation import require_int_range, require_positive, require_range
 from sim_harness.batches import (
     SplitArrays,
     load_batch,
@@ -52,95 +50,13 @@ from sim_harness.checkpoint import (
 )
 from sim_harness.evaluate import predict
 from sim_harness.model import DroNet, build_model, parameter_groups
+from sim_harness.train_config import TrainConfig, TrainResult, resolve_device
+
+__all__ = ["TrainConfig", "TrainResult", "resolve_device", "train", "train_on"]
 
 log = logging.getLogger(__name__)
 
-DEVICES = ("auto", "cpu", "cuda")
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """One training run. Defaults are the paper's hyper-parameters."""
-
-    dataset: Path
-    out_dir: Path
-    max_epochs: int = 200
-    batch_size: int = 128
-    lr: float = 5e-3
-    momentum: float = 0.9
-    weight_decay: float = 5e-4
-    dropout: float = 0.5
-    grad_clip_norm: float | None = 10.0  # not in the paper: see the module docstring
-    lr_factor: float = 0.5
-    lr_patience_epochs: int = 10  # lr x lr_factor after this many epochs without improvement
-    early_stop_patience_epochs: int = 10  # stop after MORE than this many without improvement
-    seed: int = 0
-    device: str = "auto"
-    limit_train: int | None = None  # quick runs: a fixed random subset of the training split
-    limit_val: int | None = None
-    eval_batch_size: int = 512
-    ram_max_gib: float = 4.0  # a split (or subset) up to this size is copied into RAM
-    threads: int | None = None  # torch CPU threads (None: torch's default)
-    progress: bool = True
-    resume: bool = False
-    command: str = ""  # the command line that started the run, recorded in checkpoints
-
-    def __post_init__(self) -> None:
-        require_int_range("max_epochs", self.max_epochs, 1)
-        require_int_range("batch_size", self.batch_size, 1)
-        require_positive("lr", self.lr)
-        require_range("momentum", self.momentum, 0.0, 1.0, high_inclusive=False)
-        require_range("weight_decay", self.weight_decay, 0.0, 1.0)
-        require_range("dropout", self.dropout, 0.0, 1.0, high_inclusive=False)
-        if self.grad_clip_norm is not None:
-            require_positive("grad_clip_norm", self.grad_clip_norm)
-        require_range("lr_factor", self.lr_factor, 0.0, 1.0, low_inclusive=False)
-        require_int_range("lr_patience_epochs", self.lr_patience_epochs, 1)
-        require_int_range("early_stop_patience_epochs", self.early_stop_patience_epochs, 0)
-        require_int_range("seed", self.seed, 0)
-        if self.device not in DEVICES:
-            raise ConfigError(f"device: {self.device!r} is not one of {', '.join(DEVICES)}")
-        for name in ("limit_train", "limit_val"):
-            value = getattr(self, name)
-            if value is not None:
-                require_int_range(name, value, 1)
-        require_int_range("eval_batch_size", self.eval_batch_size, 1)
-        require_range("ram_max_gib", self.ram_max_gib, 0.0, None)
-        if self.threads is not None:
-            require_int_range("threads", self.threads, 1, 1024)
-
-    def as_dict(self) -> dict[str, Any]:
-        """Plain data (paths as strings) for JSON and checkpoints."""
-        return {
-            k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()
-        }
-
-
-@dataclass(frozen=True)
-class TrainResult:
-    """What a finished (or stopped) run achieved; `history` is one dict per epoch."""
-
-    out_dir: Path
-    epochs_run: int
-    best_epoch: int
-    best_val_loss: float
-    initial_val_loss: float
-    stopped_early: bool
-    wall_time_s: float
-    history: list[dict[str, Any]] = field(repr=False)
-
-    @property
-    def best_checkpoint(self) -> Path:
-        return self.out_dir / BEST_NAME
-
-
-def resolve_device(name: str) -> torch.device:
-    """ "auto" -> CUDA when available, else CPU; "cuda" without a GPU is a `ConfigError`."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device: 'cuda' was requested but torch sees no CUDA device")
-    return torch.device(name)
+CURVE_EVERY_EPOCHS = 5  # learning_curve.png is redrawn this often, and when training ends
 
 
 def velocity_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -212,6 +128,59 @@ def train(config: TrainConfig) -> TrainResult:
     return train_on(config, dataset.manifest, dataset.split("train"), dataset.split("val"))
 
 
+def make_optimizer(model: DroNet, config: TrainConfig) -> torch.optim.SGD:
+    """SGD with momentum; weight decay on the conv and linear weights only."""
+    return torch.optim.SGD(
+        parameter_groups(model, config.weight_decay),
+        lr=config.lr,
+        momentum=config.momentum,
+    )
+
+
+def make_scheduler(
+    optimizer: torch.optim.Optimizer, config: TrainConfig
+) -> torch.optim.lr_scheduler.ReduceLROnPlateau:
+    """lr x `lr_factor` on the `lr_patience_epochs`-th consecutive epoch without improvement."""
+    return torch.optim.lr_scheduler.ReduceLROnPlateau(
+        optimizer,
+        mode="min",
+        factor=config.lr_factor,
+        patience=config.lr_patience_epochs - 1,  # torch acts on the (patience + 1)-th bad epoch
+        threshold=0.0,
+    )
+
+
+@dataclass
+class Plateau:
+    """Early-stopping bookkeeping; `stop` once more than `patience_epochs` epochs in a row have
+    not lowered the validation loss (an equal loss is no improvement)."""
+
+    patience_epochs: int
+    best_val_loss: float = math.inf
+    best_epoch: int = 0
+    epochs_since_best: int = 0
+
+    def update(self, epoch: int, val_loss: float) -> bool:
+        """Record one epoch's validation loss; True when it is a new best."""
+        improved = val_loss < self.best_val_loss
+        if improved:
+            self.best_val_loss, self.best_epoch, self.epochs_since_best = val_loss, epoch, 0
+        else:
+            self.epochs_since_best += 1
+        return improved
+
+    @property
+    def stop(self) -> bool:
+        return self.epochs_since_best > self.patience_epochs
+
+    def as_state(self) -> dict[str, Any]:
+        return {
+            "best_val_loss": self.best_val_loss,
+            "best_epoch": self.best_epoch,
+            "epochs_since_best": self.epochs_since_best,
+        }
+
+
 def train_on(
     config: TrainConfig,
     manifest: dict[str, Any],
@@ -232,49 +201,34 @@ def train_on(
 
     torch.manual_seed(config.seed)
     model = build_model(manifest["pixel_mean"], manifest["pixel_std"], config.dropout, device)
-    optimizer = torch.optim.SGD(
-        parameter_groups(model, config.weight_decay),  # type: ignore[arg-type]
-        lr=config.lr,
-        momentum=config.momentum,
-    )
-    scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
-        optimizer,
-        mode="min",
-        factor=config.lr_factor,
-        patience=config.lr_patience_epochs - 1,  # torch halves on the (patience + 1)-th bad epoch
-        threshold=0.0,
-    )
+    optimizer = make_optimizer(model, config)
+    scheduler = make_scheduler(optimizer, config)
+    plateau = Plateau(config.early_stop_patience_epochs)
     state: dict[str, Any] = {
         "epoch": 0,
-        "best_val_loss": float("inf"),
-        "best_epoch": 0,
-        "epochs_since_best": 0,
         "history": [],
         "dataset": {"id": manifest["id"], "root": str(config.dataset)},
         "command": config.command,
-        "initial_val_loss": float("nan"),
         "wall_time_s": 0.0,
+        "model_config": {
+            "pixel_mean": float(manifest["pixel_mean"]),
+            "pixel_std": float(manifest["pixel_std"]),
+            "dropout": config.dropout,
+        },
     }
     if config.resume:
         state = _resume(out / LAST_NAME, manifest, model, optimizer, scheduler, device)
+        plateau.best_val_loss = state["best_val_loss"]
+        plateau.best_epoch = state["best_epoch"]
+        plateau.epochs_since_best = state["epochs_since_best"]
     else:
         state["initial_val_loss"] = validation_loss(model, val_data, config.eval_batch_size, device)
-    (out / "config.json").write_text(
-        json.dumps(
-            {
-                "config": config.as_dict(),
-                "dataset_id": manifest["id"],
-                "from_epoch": state["epoch"],
-            },
-            indent=2,
-        )
-        + "\n"
-    )
+    info = {"config": config.as_dict(), "dataset_id": manifest["id"], "from_epoch": state["epoch"]}
+    (out / "config.json").write_text(json.dumps(info, indent=2) + "\n")
     history: list[dict[str, Any]] = state["history"]
     run_start = time.perf_counter() - state["wall_time_s"]
-    stopped_early = state["epochs_since_best"] > config.early_stop_patience_epochs
     epoch = state["epoch"]
-    while not stopped_early and epoch < config.max_epochs:
+    while not plateau.stop and epoch < config.max_epochs:
         epoch += 1
         epoch_start = time.perf_counter()
         batches = shuffled_batches(train_data.n_samples, config.batch_size, config.seed, epoch)
@@ -291,12 +245,7 @@ def train_on(
         val_loss = validation_loss(model, val_data, config.eval_batch_size, device)
         lr = optimizer.param_groups[0]["lr"]
         scheduler.step(val_loss)
-        improved = val_loss < state["best_val_loss"]
-        if improved:
-            state.update(best_val_loss=val_loss, best_epoch=epoch, epochs_since_best=0)
-        else:
-            state["epochs_since_best"] += 1
-        stopped_early = state["epochs_since_best"] > config.early_stop_patience_epochs
+        improved = plateau.update(epoch, val_loss)
         history.append(
             {
                 "epoch": epoch,
@@ -311,13 +260,9 @@ def train_on(
             }
         )
         state.update(
+            plateau.as_state(),
             epoch=epoch,
             model=model.state_dict(),
-            model_config={
-                "pixel_mean": float(manifest["pixel_mean"]),
-                "pixel_std": float(manifest["pixel_std"]),
-                "dropout": config.dropout,
-            },
             optimizer=optimizer.state_dict(),
             scheduler=scheduler.state_dict(),
             rng=rng_state(),
@@ -328,24 +273,27 @@ def train_on(
         if improved:
             save_checkpoint(state, out / BEST_NAME)
         _write_metrics(history, out / "metrics.jsonl")
-        _write_learning_curve(history, state["initial_val_loss"], out)
+        if epoch % CURVE_EVERY_EPOCHS == 0:
+            _write_learning_curve(history, state["initial_val_loss"], out)
         log.info(
             "epoch %d: train %.4f, val %.4f (best %.4f at %d), lr %.2g, %.0f samples/s",
             epoch,
             train_loss,
             val_loss,
-            state["best_val_loss"],
-            state["best_epoch"],
+            plateau.best_val_loss,
+            plateau.best_epoch,
             lr,
             samples_per_s,
         )
+    if history:
+        _write_learning_curve(history, state["initial_val_loss"], out)
     return TrainResult(
         out_dir=out,
         epochs_run=epoch,
-        best_epoch=state["best_epoch"],
-        best_val_loss=state["best_val_loss"],
+        best_epoch=plateau.best_epoch,
+        best_val_loss=plateau.best_val_loss,
         initial_val_loss=state["initial_val_loss"],
-        stopped_early=stopped_early,
+        stopped_early=plateau.stop,
         wall_time_s=time.perf_counter() - run_start,
         history=history,
     )
