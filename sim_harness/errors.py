@@ -11,8 +11,6 @@ class ControllerError(SimError):
     """A controller returned commands of the wrong shape or non-finite values."""
 
 
-
-
 class DatasetError(SimError):
     """A dataset on disk is missing, incomplete, corrupted or was made with other parameters."""
 

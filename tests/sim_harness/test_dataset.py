@@ -167,9 +167,7 @@ def _dataset_arrays(root: Path) -> dict[str, np.ndarray]:
 
 
 def _without_run_details(manifest: dict) -> dict:
-    return {
-        k: v for k, v in manifest.items() if k not in ("generation", "command", "code_version")
-    }
+    return {k: v for k, v in manifest.items() if k not in ("generation", "command", "code_version")}
 
 
 def test_killed_generation_resumes_to_exactly_the_uninterrupted_dataset(
