@@ -12,19 +12,15 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.camera.layout import FACE_NAMES, FACE_SIZE_PX
+from companion.camera.layout import FACE_NAMES
 from companion.errors import ModelError
 from sim_harness.checkpoint import CheckpointError
 from sim_harness.experiments import RunRecord, SuiteResult
 from sim_harness.export import load_eager_model
-from sim_harness.gradcam import TARGETS, blend, grad_cam
+from sim_harness.gradcam import TARGETS, grad_cam, save_gradcam_png
 from sim_harness.render import PyBulletRenderer
 from sim_harness.rollout import FlightLog
 from sim_harness.world import World
@@ -56,33 +52,6 @@ def pick_flight(result: SuiteResult) -> RunRecord | None:
     common = [r for r in cnn if r.experiment == "common"]
     chosen = common or cnn
     return chosen[0] if chosen else None
-
-
-def draw_strip(
-    image: NDArray[np.uint8],
-    heatmaps: dict[str, NDArray[np.float32]],
-    path: Path,
-    title: str,
-) -> Path:
-    """The raw strip, then each heatmap (64, 384) in [0, 1] blended over it; one row each."""
-    rows = 1 + len(heatmaps)
-    fig, axes = plt.subplots(rows, 1, figsize=(10, 1.95 * rows + 0.3), dpi=100, squeeze=False)
-    axes[0, 0].imshow(image, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
-    axes[0, 0].set_ylabel("image", fontsize=8)
-    for ax, (label, heat) in zip(axes[1:, 0], heatmaps.items(), strict=True):
-        ax.imshow(blend(image, heat), interpolation="nearest")
-        ax.set_ylabel(label, fontsize=8)
-    for ax in axes[:, 0]:
-        ax.set_xticks([FACE_SIZE_PX * (k + 0.5) for k in range(len(FACE_NAMES))], FACE_NAMES)
-        ax.set_yticks([])
-        for k in range(1, len(FACE_NAMES)):
-            ax.axvline(FACE_SIZE_PX * k - 0.5, color="w", lw=0.6)
-    axes[0, 0].set_title(title, fontsize=9)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
 
 
 def saliency(
@@ -122,7 +91,7 @@ def save_gradcam_strip(result: SuiteResult, path: Path, time_s: float) -> Gradca
         f"{record.experiment}, seed {record.seed}, agent 0, t = {t:.1f} s: CNN output (body FLU) "
         f"[{vel[0]:+.2f}, {vel[1]:+.2f}, {vel[2]:+.2f}] m/s"
     )
-    draw_strip(image, heatmaps, path, title)
+    save_gradcam_png(image, heatmaps, path, title)
     caption = (
         f"Agent 0's six views ({', '.join(FACE_NAMES)}) at t = {t:.1f} s of the CNN's "
         f"{record.experiment} flight, seed {record.seed}, rendered again from the logged poses "

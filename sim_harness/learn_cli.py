@@ -12,19 +12,14 @@ directory or a `.ckpt`); it defaults to the shipped model.
 from __future__ import annotations
 
 import argparse
-import shlex
-import sys
 from pathlib import Path
 from typing import Any
 
 from companion.errors import ConfigError
+from sim_harness.dataset.cli import command_line
 from sim_harness.suites import DEFAULT_MODEL_PATH
 
 SPLITS = ("train", "val", "test")
-
-
-def _command_line() -> str:
-    return shlex.join(["swarm-sim", *sys.argv[1:]])
 
 
 def _samples(text: str) -> list[int]:
@@ -106,7 +101,7 @@ def _train(args: argparse.Namespace) -> int:
         limit_val=args.limit_val,
         resume=args.resume,
         progress=not args.no_progress,
-        command=_command_line(),
+        command=command_line(),
     )
     result = train(config)
     how = "stopped early" if result.stopped_early else "reached the epoch limit"

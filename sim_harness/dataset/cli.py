@@ -56,8 +56,9 @@ def add_dataset_commands(sub: Any) -> None:
     m.set_defaults(handler=_merge)
 
 
-def _command_line() -> str:
-    return "swarm-sim " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+def command_line() -> str:
+    """This process's `swarm-sim` command line, quoted, for manifests and checkpoints."""
+    return shlex.join(["swarm-sim", *sys.argv[1:]])
 
 
 def _generate(args: argparse.Namespace) -> int:
@@ -76,7 +77,7 @@ def _generate(args: argparse.Namespace) -> int:
     out = args.out or Path("data") / f"{args.preset}-s{args.seed}"
     try:
         dataset = generate(
-            out, spec, workers=args.workers, progress=not args.no_progress, command=_command_line()
+            out, spec, workers=args.workers, progress=not args.no_progress, command=command_line()
         )
     except KeyboardInterrupt:
         print(
@@ -103,7 +104,7 @@ def _inspect(args: argparse.Namespace) -> int:
 
 
 def _merge(args: argparse.Namespace) -> int:
-    dataset = merge(args.sources, args.out, command=_command_line())
+    dataset = merge(args.sources, args.out, command=command_line())
     counts = dataset.manifest["counts"]
     print(f"wrote {args.out}: train {counts['train']}, val {counts['val']}, test {counts['test']}")
     return 0

@@ -52,14 +52,15 @@ def write_run(root: Path, run: RunData) -> Path:
     """Store one run atomically (a crash leaves either the whole file or only a `.tmp`)."""
     path = run_path(root, run.split, run.run_index)
     path.parent.mkdir(parents=True, exist_ok=True)
-    pixels = run.images.astype(np.int64)
+    images = run.images
     arrays: dict[str, NDArray[np.generic]] = {
-        "images": run.images,
+        "images": images,
         "run_index": np.array(run.run_index, dtype=np.int64),
         "termination": np.array(run.termination),
         "migration_point_world_enu": run.migration_point_world_enu,
-        "pixel_sum": np.array(pixels.sum(), dtype=np.int64),
-        "pixel_sumsq": np.array((pixels * pixels).sum(), dtype=np.int64),
+        "pixel_sum": np.array(images.sum(dtype=np.int64), dtype=np.int64),
+        # 255^2 fits uint16: exact squares without an int64 copy of the images
+        "pixel_sumsq": np.array(np.square(images, dtype=np.uint16).sum(dtype=np.int64)),
         **run.arrays,
     }
     tmp = path.with_name(path.name + ".tmp")
