@@ -5,7 +5,8 @@ A checkpoint (`*.ckpt`, written with `torch.save`, read with `weights_only=True`
 - `format`: `CHECKPOINT_FORMAT`
 - `epoch`: completed epochs (1-based count; the next epoch to run is `epoch + 1`)
 - `model`: the model's state dict; `model_config`: `{"pixel_mean", "pixel_std", "dropout"}`
-- `optimizer`, `scheduler`: their state dicts
+- `optimizer`, `scheduler`: their state dicts; the optimizer's also names its parameters
+  (`param_names`, one list per group), so a resume maps state by name, not by position
 - `best_val_loss`, `best_epoch`, `epochs_since_best`: early-stopping state
 - `rng`: `{"torch": CPU generator state, "cuda": list of CUDA generator states or None}`
 - `history`: one dict per completed epoch (what `metrics.jsonl` holds)
@@ -66,6 +67,81 @@ def model_from_checkpoint(state: dict[str, Any], device: str | torch.device = "c
     model = build_model(cfg["pixel_mean"], cfg["pixel_std"], cfg["dropout"], device=device)
     model.load_state_dict(state["model"])
     return model.eval()
+
+
+def optimizer_state(optimizer: torch.optim.Optimizer, model: torch.nn.Module) -> dict[str, Any]:
+    """`optimizer.state_dict()` plus the name of every parameter, group by group.
+
+    torch keys optimizer state by a parameter's position, which changes whenever a module's
+    attributes are reordered; the names let `load_optimizer_state` put each momentum buffer
+    back on the parameter it belongs to.
+    """
+    names = {id(p): name for name, p in model.named_parameters()}
+    state = optimizer.state_dict()
+    state["param_names"] = [
+        [names[id(p)] for p in group["params"]] for group in optimizer.param_groups
+    ]
+    return state
+
+
+def load_optimizer_state(
+    optimizer: torch.optim.Optimizer, model: torch.nn.Module, saved: dict[str, Any]
+) -> None:
+    """Restore `saved` (from `optimizer_state`) into `optimizer`, matching parameters by name.
+
+    Raises `CheckpointError` naming the parameter when the saved state does not fit the model.
+    """
+    saved = dict(saved)
+    saved_names = saved.pop("param_names", None)
+    names = {id(p): name for name, p in model.named_parameters()}
+    current = [[names[id(p)] for p in group["params"]] for group in optimizer.param_groups]
+    if saved_names is None:  # older checkpoints: positions only
+        saved_names = current
+    if [sorted(g) for g in saved_names] != [sorted(g) for g in current]:
+        raise CheckpointError(
+            "cannot resume: the checkpoint's optimizer groups hold other parameters "
+            f"({_group_difference(saved_names, current)})"
+        )
+    by_name = {
+        name: saved["state"][index]
+        for group, names_in_group in zip(saved["param_groups"], saved_names, strict=True)
+        for index, name in zip(group["params"], names_in_group, strict=True)
+        if index in saved["state"]
+    }
+    params = dict(model.named_parameters())
+    state: dict[int, Any] = {}
+    groups = []
+    index = 0
+    for saved_group, names_in_group in zip(saved["param_groups"], current, strict=True):
+        ids = []
+        for name in names_in_group:
+            entry = by_name.get(name)
+            if entry is not None:
+                for key, value in entry.items():
+                    if (
+                        isinstance(value, torch.Tensor)
+                        and value.dim()
+                        and value.shape != params[name].shape
+                    ):
+                        raise CheckpointError(
+                            f"cannot resume: optimizer {key} for {name} has shape "
+                            f"{tuple(value.shape)}, the parameter {tuple(params[name].shape)}"
+                        )
+                state[index] = entry
+            ids.append(index)
+            index += 1
+        groups.append({**saved_group, "params": ids})
+    optimizer.load_state_dict({"state": state, "param_groups": groups})
+
+
+def _group_difference(saved: list[list[str]], current: list[list[str]]) -> str:
+    if len(saved) != len(current):
+        return f"{len(saved)} groups saved, {len(current)} now"
+    for i, (a, b) in enumerate(zip(saved, current, strict=True)):
+        missing, extra = sorted(set(b) - set(a)), sorted(set(a) - set(b))
+        if missing or extra:
+            return f"group {i}: not saved {missing[:3]}, unknown {extra[:3]}"
+    return "groups differ"
 
 
 def rng_state() -> dict[str, Any]:

@@ -44,6 +44,8 @@ from sim_harness.checkpoint import (
     LAST_NAME,
     CheckpointError,
     load_checkpoint,
+    load_optimizer_state,
+    optimizer_state,
     restore_rng_state,
     rng_state,
     save_checkpoint,
@@ -263,7 +265,7 @@ def train_on(
             plateau.as_state(),
             epoch=epoch,
             model=model.state_dict(),
-            optimizer=optimizer.state_dict(),
+            optimizer=optimizer_state(optimizer, model),
             scheduler=scheduler.state_dict(),
             rng=rng_state(),
             config=config.as_dict(),
@@ -317,7 +319,7 @@ def _resume(
             f"not {manifest['id']}"
         )
     model.load_state_dict(state["model"])
-    optimizer.load_state_dict(state["optimizer"])
+    load_optimizer_state(optimizer, model, state["optimizer"])
     scheduler.load_state_dict(state["scheduler"])
     restore_rng_state(state["rng"])
     log.info("resumed %s after epoch %d", path, state["epoch"])

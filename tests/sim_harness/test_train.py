@@ -8,7 +8,14 @@ import torch
 
 from companion.errors import ConfigError
 from sim_harness.batches import InMemorySplit, prefetch, shuffled_batches, subset
-from sim_harness.checkpoint import BEST_NAME, LAST_NAME, CheckpointError, load_checkpoint
+from sim_harness.checkpoint import (
+    BEST_NAME,
+    LAST_NAME,
+    CheckpointError,
+    load_checkpoint,
+    load_optimizer_state,
+    optimizer_state,
+)
 from sim_harness.dataset.store import open_dataset
 from sim_harness.model import build_model
 from sim_harness.train import (
@@ -194,3 +201,45 @@ def test_prefetch_keeps_order_and_raises_the_producers_error() -> None:
 
     with pytest.raises(OSError, match="disk gone"):
         list(prefetch(failing()))
+
+
+class _TwoParams(torch.nn.Module):
+    """Same parameter names, registration order chosen by the caller."""
+
+    def __init__(self, order: tuple[str, str]) -> None:
+        super().__init__()
+        shapes = {"head": (3,), "norm": (8,)}
+        for name in order:
+            self.register_parameter(name, torch.nn.Parameter(torch.zeros(shapes[name])))
+
+
+def _stepped_sgd(model: torch.nn.Module) -> torch.optim.SGD:
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.1, momentum=0.9)
+    for param in model.parameters():
+        param.grad = torch.arange(param.numel(), dtype=torch.float32) + param.numel()
+    optimizer.step()
+    return optimizer
+
+
+def test_resume_maps_optimizer_state_by_parameter_name_not_position() -> None:
+    before = _TwoParams(("head", "norm"))
+    saved = optimizer_state(_stepped_sgd(before), before)
+    after = _TwoParams(("norm", "head"))  # a refactor reordered the attributes
+    optimizer = torch.optim.SGD(after.parameters(), lr=0.1, momentum=0.9)
+
+    load_optimizer_state(optimizer, after, saved)
+
+    for name, param in after.named_parameters():
+        buffer = optimizer.state[param]["momentum_buffer"]
+        assert buffer.shape == param.shape, name
+        assert torch.equal(buffer, torch.arange(param.numel(), dtype=torch.float32) + param.numel())
+
+
+def test_resume_refuses_optimizer_state_that_does_not_fit_naming_the_parameter() -> None:
+    before = _TwoParams(("head", "norm"))
+    saved = optimizer_state(_stepped_sgd(before), before)
+    del saved["param_names"]  # positions only, as torch stores it
+    after = _TwoParams(("norm", "head"))
+    optimizer = torch.optim.SGD(after.parameters(), lr=0.1, momentum=0.9)
+    with pytest.raises(CheckpointError, match="momentum_buffer for norm has shape"):
+        load_optimizer_state(optimizer, after, saved)
