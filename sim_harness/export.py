@@ -2,9 +2,11 @@
 
 The export is the `companion.model_file` format: `NAME.pt` (TorchScript, metadata embedded) and
 `NAME.json` (its SHA-256). The TorchScript graph is traced in eval mode from a CPU copy in
-channels_last layout and frozen (`torch.jit.freeze`, which also folds each batch norm that follows
-a conv into it). Input uint8 (B, 64, 384), output float32 (B, 3), body FLU velocity in m/s; it
-loads with `torch.jit.load` alone.
+channels_last layout, rewritten with faster batch-1 operators (`sim_harness.inference_graph`:
+sliced max pool, folded pre-activation batch norms, im2col shortcuts), and frozen
+(`torch.jit.freeze`, which also folds each batch norm that follows a conv into it). Input uint8
+(B, 64, 384), output float32 (B, 3), body FLU velocity in m/s; it loads with `torch.jit.load`
+alone.
 
 `torch.jit.optimize_for_inference` is not baked into the file: in torch 2.13 it rewrites convs
 into MKL-DNN constants that `torch.jit.load` cannot read back ("required keyword attribute 'value'
@@ -33,6 +35,7 @@ from companion.frames import BODY_FRAME, WORLD_FRAME
 from companion.model_file import base_metadata, load_model, save_model
 from sim_harness.checkpoint import load_checkpoint, model_from_checkpoint
 from sim_harness.evaluate import PolicyModule
+from sim_harness.inference_graph import InferenceDroNet
 from sim_harness.model import (
     DroNet,
     build_model,
@@ -57,13 +60,20 @@ class ExportResult:
     metadata: dict[str, Any]
 
 
-def to_torchscript(model: DroNet) -> torch.jit.ScriptModule:
-    """Traced and frozen CPU copy of `model` in eval mode, channels_last."""
+def to_torchscript(model: DroNet, graph: str = "inference") -> torch.jit.ScriptModule:
+    """Traced and frozen CPU copy of `model` in eval mode, channels_last.
+
+    `graph="inference"` (the export) traces `InferenceDroNet`, the same function with faster
+    batch-1 operators; `graph="eager"` traces `DroNet` itself (kept for the benchmark).
+    """
+    if graph not in ("inference", "eager"):
+        raise ValueError(f"graph must be 'inference' or 'eager', not {graph!r}")
     cpu = to_channels_last(copy.deepcopy(model)).eval()
+    module: torch.nn.Module = InferenceDroNet(cpu).eval() if graph == "inference" else cpu
     with torch.no_grad(), warnings.catch_warnings():
         # TorchScript is the drone's format by design; torch 2.13 flags it as deprecated.
         warnings.simplefilter("ignore", DeprecationWarning)
-        traced = torch.jit.trace(cpu, example_input(1))  # type: ignore[no-untyped-call]
+        traced = torch.jit.trace(module, example_input(1))  # type: ignore[no-untyped-call]
         frozen: torch.jit.ScriptModule = torch.jit.freeze(traced)
     return frozen
 
