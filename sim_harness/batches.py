@@ -54,6 +54,16 @@ class InMemorySplit:
         return int(self.images.shape[0])
 
 
+def concat_splits(parts: list[SplitArrays]) -> InMemorySplit:
+    """One in-RAM split holding every sample of `parts` in order (meta: the columns all share)."""
+    keys = set.intersection(*(set(part.meta) for part in parts))
+    return InMemorySplit(
+        images=np.concatenate([np.asarray(part.images) for part in parts]),
+        targets=np.concatenate([np.asarray(part.targets, dtype=np.float32) for part in parts]),
+        meta={key: np.concatenate([np.asarray(part.meta[key]) for part in parts]) for key in keys},
+    )
+
+
 def subset(split: SplitArrays, limit: int | None, seed: int, ram_max_bytes: int) -> SplitArrays:
     """The first-come `limit` samples of a seeded permutation (all when `limit` is None).
 

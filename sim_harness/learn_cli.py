@@ -51,6 +51,21 @@ def add_learning_commands(sub: Any) -> None:
     t.add_argument("--limit-train", type=int, default=None, help="train on N samples (quick runs)")
     t.add_argument("--limit-val", type=int, default=None, help="validate on N samples")
     t.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt")
+    t.add_argument(
+        "--extra-train",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="add this aggregated dataset's training split (repeatable; loads the splits in RAM)",
+    )
+    t.add_argument(
+        "--init-from",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="fine-tune: start from these weights (checkpoint or policy file)",
+    )
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(handler=_train)
 
@@ -100,6 +115,8 @@ def _train(args: argparse.Namespace) -> int:
         limit_train=args.limit_train,
         limit_val=args.limit_val,
         resume=args.resume,
+        extra_train=tuple(args.extra_train),
+        init_from=args.init_from,
         progress=not args.no_progress,
         command=command_line(),
     )

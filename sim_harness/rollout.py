@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -108,8 +109,12 @@ def fly(
     vehicle_params: VehicleParams | None = None,
     progress: bool = False,
     renderer: Renderer | None = None,
+    stop_when: Callable[[FloatArray, float], str | None] | None = None,
 ) -> FlightLog:
     """Run one flight; returns its log (use `summarize` for the paper's numbers).
+
+    `stop_when(positions, t_s)`, checked after every control step, ends the flight early when it
+    returns a reason (which becomes the log's `stop_reason`); arrival always ends it.
 
     A controller that declares the `"cameras"` sense gets every agent's 64x384 image each control
     step, rendered with `renderer` (default: a `PyBulletRenderer`); no other controller pays for it.
@@ -189,6 +194,11 @@ def fly(
             if has_arrived(scenario, s.pos_world_enu):
                 stop_reason = "arrived"
                 break
+            if stop_when is not None:
+                reason = stop_when(s.pos_world_enu, (step + 1) * rates.control_dt_s)
+                if reason is not None:
+                    stop_reason = reason
+                    break
         record(np.full((n, 3), np.nan))  # final state: nothing is issued after the run
     wall = time.perf_counter() - started
     pos = np.stack(rows["pos"])

@@ -34,6 +34,7 @@ from tqdm import tqdm
 
 from sim_harness.batches import (
     SplitArrays,
+    concat_splits,
     load_batch,
     prefetch,
     shuffled_batches,
@@ -127,7 +128,17 @@ def train(config: TrainConfig) -> TrainResult:
     from sim_harness.dataset.store import open_dataset
 
     dataset = open_dataset(config.dataset)
-    return train_on(config, dataset.manifest, dataset.split("train"), dataset.split("val"))
+    train_split: SplitArrays = dataset.split("train")
+    if config.extra_train:
+        extras = [open_dataset(root) for root in config.extra_train]
+        train_split = concat_splits([train_split, *(extra.split("train") for extra in extras)])
+        log.info(
+            "training on %s plus %s: %d samples",
+            config.dataset,
+            ", ".join(str(r) for r in config.extra_train),
+            train_split.n_samples,
+        )
+    return train_on(config, dataset.manifest, train_split, dataset.split("val"))
 
 
 def make_optimizer(model: DroNet, config: TrainConfig) -> torch.optim.SGD:
@@ -212,6 +223,7 @@ def train_on(
         "dataset": {"id": manifest["id"], "root": str(config.dataset)},
         "command": config.command,
         "wall_time_s": 0.0,
+        "train_samples": train_data.n_samples,
         "model_config": {
             "pixel_mean": float(manifest["pixel_mean"]),
             "pixel_std": float(manifest["pixel_std"]),
@@ -224,6 +236,8 @@ def train_on(
         plateau.best_epoch = state["best_epoch"]
         plateau.epochs_since_best = state["epochs_since_best"]
     else:
+        if config.init_from is not None:
+            _init_weights(model, config.init_from, state)
         state["initial_val_loss"] = validation_loss(model, val_data, config.eval_batch_size, device)
     info = {"config": config.as_dict(), "dataset_id": manifest["id"], "from_epoch": state["epoch"]}
     (out / "config.json").write_text(json.dumps(info, indent=2) + "\n")
@@ -324,6 +338,22 @@ def _resume(
     restore_rng_state(state["rng"])
     log.info("resumed %s after epoch %d", path, state["epoch"])
     return state
+
+
+def _init_weights(model: DroNet, source: Path, state: dict[str, Any]) -> None:
+    """Load `source`'s weights (checkpoint or policy file) into `model` for fine-tuning.
+
+    The standardization comes along with the weights (they were trained with it); the run's
+    `model_config` records it.
+    """
+    from sim_harness.export import load_eager_model
+
+    init, _ = load_eager_model(Path(source), device=next(model.parameters()).device)
+    model.load_state_dict(init.state_dict())
+    state["model_config"]["pixel_mean"] = float(init.standardize.pixel_mean)
+    state["model_config"]["pixel_std"] = float(init.standardize.pixel_std)
+    state["init_from"] = str(source)
+    log.info("initialized from %s", source)
 
 
 def _write_metrics(history: list[dict[str, Any]], path: Path) -> None:

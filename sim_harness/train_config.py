@@ -42,6 +42,10 @@ class TrainConfig:
     progress: bool = True
     resume: bool = False
     command: str = ""  # the command line that started the run, recorded in checkpoints
+    # aggregated datasets (`swarm-sim dataset aggregate`) whose training splits join `dataset`'s;
+    # validation stays on `dataset`'s own split, so runs stay comparable
+    extra_train: tuple[Path, ...] = ()
+    init_from: Path | None = None  # start from these weights (checkpoint or policy file)
 
     def __post_init__(self) -> None:
         require_int_range("max_epochs", self.max_epochs, 1)
@@ -66,12 +70,18 @@ class TrainConfig:
         require_range("ram_max_gib", self.ram_max_gib, 0.0, None)
         if self.threads is not None:
             require_int_range("threads", self.threads, 1, 1024)
+        if self.init_from is not None and self.resume:
+            raise ConfigError("init_from: a resumed run continues from its own checkpoint")
 
     def as_dict(self) -> dict[str, Any]:
         """Plain data (paths as strings) for JSON and checkpoints."""
-        return {
-            k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()
-        }
+
+        def plain(v: Any) -> Any:
+            if isinstance(v, Path):
+                return str(v)
+            return [plain(x) for x in v] if isinstance(v, tuple) else v
+
+        return {k: plain(v) for k, v in dataclasses.asdict(self).items()}
 
 
 @dataclass(frozen=True)

@@ -233,8 +233,13 @@ def finalize(
     command: str,
     generation: dict[str, Any] | None = None,
     extra: dict[str, Any] | None = None,
+    id_extra: dict[str, Any] | None = None,
 ) -> Dataset:
-    """Write the manifest for these runs (run indices per split, in order) and open the dataset."""
+    """Write the manifest for these runs (run indices per split, in order) and open the dataset.
+
+    `id_extra` (e.g. an aggregated dataset's source model and scenarios) enters the dataset id
+    along with the spec's content id and the run lists.
+    """
     summaries: dict[str, list[RunSummary]] = {
         split: [read_run_summary(run_path(root, split, k)) for k in runs[split]] for split in SPLITS
     }
@@ -254,7 +259,12 @@ def finalize(
         }
         for split, rs in summaries.items()
     }
-    content = {"content_id": spec.content_id(), "runs": {s: runs[s] for s in SPLITS}}
+    content: dict[str, Any] = {
+        "content_id": spec.content_id(),
+        "runs": {s: runs[s] for s in SPLITS},
+    }
+    if id_extra:
+        content["extra"] = id_extra
     dataset_id = hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16]
     manifest: dict[str, Any] = {
         "format": FORMAT,
