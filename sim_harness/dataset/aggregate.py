@@ -40,7 +40,13 @@ from tqdm import tqdm
 
 from companion.validation import require_int_range
 from sim_harness.dataset.generate import check_or_write_spec, finalize
-from sim_harness.dataset.runs import RunData, RunTiming, teacher_targets, termination
+from sim_harness.dataset.runs import (
+    RunData,
+    RunTiming,
+    sample_arrays,
+    teacher_targets,
+    termination,
+)
 from sim_harness.dataset.spec import SPLITS, DatasetSpec
 from sim_harness.dataset.store import Dataset, remove_partial_files, stored_runs, write_run
 from sim_harness.errors import ConfigError
@@ -169,23 +175,8 @@ def fly_and_record(config: AggregateConfig, k: int, policy: BatchPolicy) -> RunD
     flight = fly(scenario, recorder, rules.rates, stop_when=stop_when)
     n_steps, n = len(recorder.images), scenario.n_agents
     reason = flight.stop_reason if flight.stop_reason != "arrived" else "arrival"
-    flat = {key: np.concatenate(rows) for key, rows in recorder.rows.items()}
-
-    def per_sample(name: str, width: int) -> FloatArray:
-        return flat[name].reshape(n_steps * n, width) if width > 1 else flat[name]
-
-    arrays: dict[str, NDArray[np.generic]] = {
-        "targets": per_sample("rey_body", 3).astype(np.float32),
-        "rey_world_enu": per_sample("rey_world", 3).astype(np.float32),
-        "pos_world_enu": per_sample("pos", 3).astype(np.float32),
-        "vel_world_enu": per_sample("vel", 3).astype(np.float32),
-        "q_world_body": per_sample("q", 4).astype(np.float32),
-        "time_s": per_sample("t", 1).astype(np.float32),
-        "n_neighbours": per_sample("n_nb", 1).astype(np.int16),
-        "nearest_m": per_sample("nearest", 1).astype(np.float32),
-        "agent": np.tile(np.arange(n, dtype=np.int16), n_steps),
-        "vel_command_world_enu": per_sample("cmd", 3).astype(np.float32),
-    }
+    cmd = recorder.rows.pop("cmd")
+    arrays = sample_arrays(recorder.rows, n_steps, n, np.concatenate(cmd))
     stages = flight.stage_time_s
     timing = RunTiming(  # the teacher labels inside the controller's step, after the CNN
         render_s=stages.get("render", 0.0),

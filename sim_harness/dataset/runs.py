@@ -108,6 +108,33 @@ def teacher_targets(
     }
 
 
+def sample_arrays(
+    rows: dict[str, list[FloatArray]], n_steps: int, n: int, vel_command: FloatArray
+) -> dict[str, NDArray[np.generic]]:
+    """A run's stored per-sample arrays from per-step rows (one (n, ...) array per step).
+
+    `rows` keys: "rey_body", "rey_world", "pos", "vel", "q", "t", "n_nb", "nearest";
+    `vel_command` is the velocity command of every sample, (n_steps * n, 3) world ENU.
+    """
+    flat = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in rows.items()}
+
+    def per_sample(name: str, width: int) -> FloatArray:
+        return flat[name].reshape(n_steps * n, width) if width > 1 else flat[name]
+
+    return {
+        "targets": per_sample("rey_body", 3).astype(np.float32),
+        "rey_world_enu": per_sample("rey_world", 3).astype(np.float32),
+        "pos_world_enu": per_sample("pos", 3).astype(np.float32),
+        "vel_world_enu": per_sample("vel", 3).astype(np.float32),
+        "q_world_body": per_sample("q", 4).astype(np.float32),
+        "time_s": per_sample("t", 1).astype(np.float32),
+        "n_neighbours": per_sample("n_nb", 1).astype(np.int16),
+        "nearest_m": per_sample("nearest", 1).astype(np.float32),
+        "agent": np.tile(np.arange(n, dtype=np.int16), n_steps),
+        "vel_command_world_enu": np.asarray(vel_command, dtype=np.float32).reshape(-1, 3),
+    }
+
+
 def simulate_run(
     spec: DatasetSpec,
     split: str,
@@ -163,23 +190,7 @@ def simulate_run(
         timing.physics_s += time.perf_counter() - done
     assert reason in TERMINATIONS
     n_steps = len(images)
-    flat = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in rows.items()}
-
-    def per_sample(name: str, width: int) -> FloatArray:
-        return flat[name].reshape(n_steps * n, width) if width > 1 else flat[name]
-
-    arrays: dict[str, NDArray[np.generic]] = {
-        "targets": per_sample("rey_body", 3).astype(np.float32),
-        "rey_world_enu": per_sample("rey_world", 3).astype(np.float32),
-        "pos_world_enu": per_sample("pos", 3).astype(np.float32),
-        "vel_world_enu": per_sample("vel", 3).astype(np.float32),
-        "q_world_body": per_sample("q", 4).astype(np.float32),
-        "time_s": per_sample("t", 1).astype(np.float32),
-        "n_neighbours": per_sample("n_nb", 1).astype(np.int16),
-        "nearest_m": per_sample("nearest", 1).astype(np.float32),
-        "agent": np.tile(np.arange(n, dtype=np.int16), n_steps),
-        "vel_command_world_enu": np.tile(vel_cmd, (n_steps, 1)).astype(np.float32),
-    }
+    arrays = sample_arrays(rows, n_steps, n, np.tile(vel_cmd, (n_steps, 1)))
     stacked = (
         np.concatenate(images)
         if images
