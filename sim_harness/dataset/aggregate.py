@@ -12,7 +12,9 @@ state it visits with the teacher's Reynolds command, exactly as `generate` label
   body frame with the capture-time attitude (`runs.teacher_targets`);
 - a flight stops as a dataset run stops (`runs.termination`): dispersion (> 7 m, the paper's
   dataset domain), arrival, ground or the time limit (15 s); the collision rule is 0.5 m instead
-  of 1 m (`default_rules`), so the near misses the CNN flies into are labelled too.
+  of 1 m (`default_rules`), so the near misses the CNN flies into are labelled too. A round can
+  widen the dispersion rule (up to r_max) and fly longer, to label the stretched flocks of a
+  CNN whose cohesion is too weak (`--dispersion-m 12 --max-run-s 30`).
 
 The result is a normal dataset folder (same store, manifest and `open_dataset`); its manifest
 says `"kind": "aggregated"` and names the policy (SHA-256), the experiments and the seeds. Run k
@@ -67,11 +69,15 @@ FloatArray = NDArray[np.float64]
 DEFAULT_EXPERIMENTS: tuple[str, ...] = ("common", "opposing", "opposing", "self-propelled")
 
 
-def default_rules() -> DatasetSpec:
+def default_rules(dispersion_m: float = 7.0, max_run_s: float = 15.0) -> DatasetSpec:
     """The dataset's stop rules, except: a flight ends at 0.5 m (drones ~0.5 m across touch),
     not 1 m, since a CNN flight that dips under 1 m is exactly what should be labelled; and
-    after 15 s, since later states of a common-goal flight repeat earlier ones."""
-    return DatasetSpec(collision_m=0.5, max_run_s=15.0)
+    after 15 s, since later states of a common-goal flight repeat earlier ones.
+
+    `dispersion_m` above the paper's 7 m labels the stretched flocks a CNN with weak cohesion
+    drifts into (opposing goals); it must stay under the perception radius r_max, where the
+    teacher still sees every agent. Fly such rounds longer (`max_run_s`): the stretch is slow."""
+    return DatasetSpec(collision_m=0.5, dispersion_m=dispersion_m, max_run_s=max_run_s)
 
 
 @dataclass(frozen=True)
@@ -94,6 +100,12 @@ class AggregateConfig:
                 f"aggregate.runs: seeds {self.seed_base}..{self.seed_base + self.runs - 1} reach "
                 f"the evaluation seeds (>= {EVAL_SEED_BASE}); use at most "
                 f"{EVAL_SEED_BASE - self.seed_base} runs"
+            )
+        r_max = self.rules.flocking.r_max_m
+        if self.rules.dispersion_m >= r_max:
+            raise ConfigError(
+                f"aggregate.dispersion_m must be < the perception radius r_max ({r_max:g} m), "
+                f"got {self.rules.dispersion_m:g}"
             )
         if not self.experiments:
             raise ConfigError("aggregate.experiments: name at least one experiment")

@@ -9,7 +9,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from sim_harness.dataset.aggregate import DEFAULT_EXPERIMENTS, AggregateConfig, aggregate
+from sim_harness.dataset.aggregate import (
+    DEFAULT_EXPERIMENTS,
+    AggregateConfig,
+    aggregate,
+    default_rules,
+)
 from sim_harness.dataset.generate import generate, merge
 from sim_harness.dataset.inspect import inspect_dataset
 from sim_harness.dataset.spec import PRESETS, DatasetSpec
@@ -73,6 +78,15 @@ def add_dataset_commands(sub: Any) -> None:
         help="comma-separated, flown in turn (default %(default)s)",
     )
     a.add_argument("--seed-base", type=int, default=0, help="first scenario seed (< 1000)")
+    a.add_argument(
+        "--dispersion-m",
+        type=float,
+        default=7.0,
+        help="stop a flight once a pair is this far apart (default 7, the paper's; < r_max)",
+    )
+    a.add_argument(
+        "--max-run-s", type=float, default=15.0, help="stop a flight after this long (default 15)"
+    )
     a.add_argument("--workers", type=int, default=1)
     a.add_argument("--no-progress", action="store_true")
     a.set_defaults(handler=_aggregate)
@@ -132,6 +146,7 @@ def _aggregate(args: argparse.Namespace) -> int:
         experiments=tuple(e.strip() for e in args.experiments.split(",") if e.strip()),
         seed_base=args.seed_base,
         workers=args.workers,
+        rules=default_rules(args.dispersion_m, args.max_run_s),
     )
     started = time.perf_counter()
     try:

@@ -86,6 +86,7 @@ def test_resuming_is_a_no_op_and_other_settings_are_refused(aggregated) -> None:
         ({"seed_base": 1000}, "aggregate.seed_base"),
         ({"experiments": ("common", "loop")}, "aggregate.experiments"),
         ({"runs": 3}, "aggregate.runs"),
+        ({"rules": default_rules(dispersion_m=20.0)}, "aggregate.dispersion_m"),
     ],
 )
 def test_bad_settings_name_the_field(overrides, field) -> None:
@@ -96,6 +97,19 @@ def test_bad_settings_name_the_field(overrides, field) -> None:
 def test_default_rules_label_near_misses_but_stay_in_the_dataset_domain() -> None:
     rules = default_rules()
     assert rules.collision_m == 0.5 and rules.dispersion_m == 7.0
+    stretched = default_rules(dispersion_m=12.0, max_run_s=30.0)
+    assert (stretched.dispersion_m, stretched.max_run_s, stretched.collision_m) == (12.0, 30.0, 0.5)
+    with pytest.raises(ConfigError, match="dispersion_m"):
+        default_rules(dispersion_m=0.4)
+
+
+def test_the_cli_refuses_a_dispersion_beyond_r_max_before_writing(tmp_path, capsys) -> None:
+    from sim_harness.cli import main
+
+    out = tmp_path / "a"
+    assert main(["dataset", "aggregate", "--out", str(out), "--dispersion-m", "21"]) == 2
+    assert "aggregate.dispersion_m must be < the perception radius r_max" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_fine_tuning_starts_from_the_given_weights_and_adds_the_aggregated_split(
