@@ -19,6 +19,7 @@ from sim_harness.suites import (
     DEFAULT_SEEDS,
     EVAL_SEED_BASE,
     LABELS,
+    SHIPPED_LOW_PASS_HZ,
     SUITES,
     SuiteConfig,
 )
@@ -55,16 +56,29 @@ def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_hel
     p.add_argument("--workers", type=int, default=1, help="flights in parallel (default 1)")
     p.add_argument(
         "--low-pass",
-        type=float,
-        default=None,
+        type=_cutoff,
+        default=SHIPPED_LOW_PASS_HZ,
         metavar="HZ",
-        help="low-pass the CNN output with this cut-off (default: off)",
+        help="low-pass the CNN output with this cut-off, or 'off' "
+        f"(default {SHIPPED_LOW_PASS_HZ:g}, what the shipped model is flown with)",
     )
     p.add_argument(
         "--duration", type=float, default=None, help="cut every flight at this many seconds"
     )
     p.add_argument("--no-gradcam", action="store_true", help="skip the Grad-CAM strip")
     p.add_argument("--quiet", action="store_true", help="no line per flight")
+
+
+def _cutoff(text: str) -> float | None:
+    """`--low-pass`: a cut-off in Hz, or `off`."""
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a cut-off in Hz or 'off', got {text!r}"
+        ) from None
 
 
 def add_experiment_commands(sub: Any) -> None:

@@ -43,6 +43,7 @@ def test_the_shipped_example_config_loads() -> None:
     assert config.recorder.directory == Path("/var/lib/vision-swarm/flights")
     assert config.telemetry.listen_endpoints == ("tcp/127.0.0.1:7447",)
     assert not config.telemetry.multicast_scouting
+    assert config.control.low_pass_cutoff_hz == 2.0  # what the shipped model was flown with
     # The example spells out the defaults: it must not drift from the code.
     assert config.daemon == DaemonConfig()
 

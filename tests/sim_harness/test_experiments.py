@@ -110,6 +110,22 @@ def test_a_pool_of_workers_gives_the_same_flights(untrained_policy_path, small_s
         np.testing.assert_array_equal(r.log.pos_world_enu, same.log.pos_world_enu)
 
 
+def test_the_shipped_low_pass_is_the_default_and_off_turns_it_off() -> None:
+    import argparse
+
+    from sim_harness.experiments_cli import add_experiment_commands
+    from sim_harness.suites import SHIPPED_LOW_PASS_HZ
+
+    assert SuiteConfig().low_pass_cutoff_hz == SHIPPED_LOW_PASS_HZ == 2.0
+    parser = argparse.ArgumentParser()
+    add_experiment_commands(parser.add_subparsers())
+    assert parser.parse_args(["demo"]).low_pass == SHIPPED_LOW_PASS_HZ
+    assert parser.parse_args(["experiments", "--low-pass", "off"]).low_pass is None
+    assert parser.parse_args(["experiments", "--low-pass", "1.5"]).low_pass == 1.5
+    with pytest.raises(SystemExit):
+        parser.parse_args(["experiments", "--low-pass", "fast"])
+
+
 def test_a_missing_model_fails_before_any_flight(tmp_path) -> None:
     flown = []
     config = SuiteConfig(model_path=tmp_path / "none.pt", n_seeds=1, duration_s=0.2)
