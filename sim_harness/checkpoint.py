@@ -76,12 +76,15 @@ def optimizer_state(optimizer: torch.optim.Optimizer, model: torch.nn.Module) ->
     attributes are reordered; the names let `load_optimizer_state` put each momentum buffer
     back on the parameter it belongs to.
     """
-    names = {id(p): name for name, p in model.named_parameters()}
     state = optimizer.state_dict()
-    state["param_names"] = [
-        [names[id(p)] for p in group["params"]] for group in optimizer.param_groups
-    ]
+    state["param_names"] = _group_names(optimizer, model)
     return state
+
+
+def _group_names(optimizer: torch.optim.Optimizer, model: torch.nn.Module) -> list[list[str]]:
+    """The name of every parameter the optimizer holds, group by group."""
+    names = {id(p): name for name, p in model.named_parameters()}
+    return [[names[id(p)] for p in group["params"]] for group in optimizer.param_groups]
 
 
 def load_optimizer_state(
@@ -93,8 +96,7 @@ def load_optimizer_state(
     """
     saved = dict(saved)
     saved_names = saved.pop("param_names", None)
-    names = {id(p): name for name, p in model.named_parameters()}
-    current = [[names[id(p)] for p in group["params"]] for group in optimizer.param_groups]
+    current = _group_names(optimizer, model)
     if saved_names is None:  # older checkpoints: positions only
         saved_names = current
     if [sorted(g) for g in saved_names] != [sorted(g) for g in current]:
