@@ -163,6 +163,15 @@ class Daemon:
             if self._policy is None:
                 load = asyncio.to_thread(Policy.load, self.config.policy, clock=self._clock)
                 self._policy = await self._until_stopped(load)
+            self.outputs.event(
+                "policy loaded",
+                "info",
+                {
+                    "sha256": self._policy.sha256,
+                    "fused": self._policy.fused,
+                    "warmup_ms": 1e3 * (self._policy.warmup_latency_s or 0.0),
+                },
+            )
             await self._supervise(keepalive)
         except _StopRequested:
             log.info("stopped while starting up")

@@ -2,8 +2,9 @@
 
 `Policy.load(config)` loads the policy file with `companion.model_file.load_model` (the SHA-256 from
 the config must match, and the sidecar's; the metadata must describe this rig: 64x384 uint8 input
-in `layout.FACE_NAMES` order, body-FLU velocity output), sets torch's intra-op threads and warms
-the model up.
+in `layout.FACE_NAMES` order, body-FLU velocity output), sets torch's intra-op threads, turns on
+oneDNN Graph fusion (`graph_fusion`, see `companion.model_file.enable_graph_fusion`) and warms the
+model up; `fused` then says whether the graph runs as fused oneDNN partitions.
 
 `await policy.infer(image)` runs the model in a dedicated single-thread executor, so the event loop
 keeps ticking while it runs (TorchScript releases the GIL). It never raises for what the model
@@ -35,7 +36,13 @@ from numpy.typing import NDArray
 
 from companion.camera.layout import IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX
 from companion.errors import ConfigError
-from companion.model_file import LoadedModel, check_metadata, load_model
+from companion.model_file import (
+    LoadedModel,
+    check_metadata,
+    enable_graph_fusion,
+    graph_is_fused,
+    load_model,
+)
 from companion.sections import section_from_dict
 from companion.validation import require_int_range, require_range
 
@@ -57,6 +64,7 @@ class PolicyConfig:
     max_speed_mps: float = 10.0  # a larger output speed is treated as a model failure
     threads: int = 1  # torch intra-op threads (process-wide setting)
     warmup_runs: int = 3
+    graph_fusion: bool = True  # oneDNN Graph fusion of the TorchScript graph (process-wide)
 
     def __post_init__(self) -> None:
         s = SECTION
@@ -70,6 +78,9 @@ class PolicyConfig:
         require_range(f"{s}.max_speed_mps", self.max_speed_mps, 0.0, 100.0, low_inclusive=False)
         require_int_range(f"{s}.threads", self.threads, 1, 64)
         require_int_range(f"{s}.warmup_runs", self.warmup_runs, 0, 1000)
+        if not isinstance(self.graph_fusion, bool):
+            got = self.graph_fusion
+            raise ConfigError(f"{s}.graph_fusion: expected true or false, got {got!r}")
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], base_dir: Path | None = None) -> PolicyConfig:
@@ -192,12 +203,16 @@ class Policy:
         self._lock = threading.Lock()
         self._in_flight_since: float | None = None
         self.warmup_latency_s: float | None = None
+        self.fused = False  # whether the warmed-up graph runs as fused oneDNN partitions
 
     @classmethod
     def load(cls, config: PolicyConfig, *, clock: Callable[[], float] = time.monotonic) -> Policy:
         """Load and verify the file (raises `ModelError`), set threads, warm up (blocking)."""
         loaded = load_model(config.model_path, expected_sha256=config.sha256)
         torch.set_num_threads(config.threads)
+        fusion = enable_graph_fusion(config.graph_fusion)
+        if config.graph_fusion and not fusion:
+            log.warning("oneDNN Graph fusion is not available in this torch build: running unfused")
         policy = cls(loaded, config, clock=clock)
         try:
             policy.warm_up()
@@ -205,10 +220,11 @@ class Policy:
             policy.close()
             raise
         log.info(
-            "policy %s loaded (sha256 %s), warm-up %.1f ms",
+            "policy %s loaded (sha256 %s), warm-up %.1f ms, %s",
             loaded.path,
             loaded.sha256[:12],
             1e3 * (policy.warmup_latency_s or 0.0),
+            "fused (oneDNN Graph)" if policy.fused else "unfused",
         )
         return policy
 
@@ -231,13 +247,13 @@ class Policy:
             return
         grey = torch.full((1, *IMAGE_SHAPE), 128, dtype=torch.uint8)
 
-        def run() -> float:
+        def run() -> tuple[float, bool]:
             start = self._clock()
             for _ in range(self.config.warmup_runs):
                 self._run_model(grey)
-            return (self._clock() - start) / self.config.warmup_runs
+            return (self._clock() - start) / self.config.warmup_runs, graph_is_fused()
 
-        self.warmup_latency_s = self._thread.submit(run).result()
+        self.warmup_latency_s, self.fused = self._thread.submit(run).result()
 
     def _run_model(self, batch_u8: torch.Tensor) -> torch.Tensor:
         """The model call: (B, 64, 384) uint8 -> (B, 3) float; runs on the worker thread."""

@@ -2,15 +2,16 @@
 
 The export is the `companion.model_file` format: `NAME.pt` (TorchScript, metadata embedded) and
 `NAME.json` (its SHA-256). The TorchScript graph is traced in eval mode from a CPU copy in
-channels_last layout, rewritten with faster batch-1 operators (`sim_harness.inference_graph`:
-sliced max pool, folded pre-activation batch norms, im2col shortcuts), and frozen
-(`torch.jit.freeze`, which also folds each batch norm that follows a conv into it). Input uint8
-(B, 64, 384), output float32 (B, 3), body FLU velocity in m/s; it loads with `torch.jit.load`
-alone.
+channels_last layout, with the input standardization folded into conv1
+(`sim_harness.inference_graph`), and frozen (`torch.jit.freeze`, which also folds each batch norm
+that follows a conv into it). Input uint8 (B, 64, 384), output float32 (B, 3), body FLU velocity
+in m/s; it loads with `torch.jit.load` alone. The drone's loader (`companion.policy.Policy.load`)
+turns on torch's oneDNN Graph fuser first, which compiles the graph into fused partitions at its
+first calls; the metadata's `runtime` section says so for other loaders.
 
 `torch.jit.optimize_for_inference` is not baked into the file: in torch 2.13 it rewrites convs
 into MKL-DNN constants that `torch.jit.load` cannot read back ("required keyword attribute 'value'
-is undefined"). A loader may apply it after loading; `benchmarks/cnn_latency.py` measures both.
+is undefined"), and it measured slower than the oneDNN Graph fuser (docs/BENCHMARKS.md).
 
 Grad-CAM needs the eager network, which a frozen graph no longer is, so the export also writes
 `NAME.weights.pt` (state dict + model config, read with `weights_only=True`); its SHA-256 is in
@@ -63,8 +64,8 @@ class ExportResult:
 def to_torchscript(model: DroNet, graph: str = "inference") -> torch.jit.ScriptModule:
     """Traced and frozen CPU copy of `model` in eval mode, channels_last.
 
-    `graph="inference"` (the export) traces `InferenceDroNet`, the same function with faster
-    batch-1 operators; `graph="eager"` traces `DroNet` itself (kept for the benchmark).
+    `graph="inference"` (the export) traces `InferenceDroNet`, the same function with the input
+    standardization folded into conv1; `graph="eager"` traces `DroNet` itself (for the tests).
     """
     if graph not in ("inference", "eager"):
         raise ValueError(f"graph must be 'inference' or 'eager', not {graph!r}")
@@ -128,6 +129,12 @@ def policy_metadata(
                 "name": "DroNet ResNet-8, single 3-output regression head",
                 "parameters": count_parameters(model),
                 "gradcam_layer": "block2.conv_strided (64 x 4 x 24)",
+            },
+            "runtime": {
+                "graph": "frozen, channels_last, standardization folded into conv1",
+                "onednn_fusion": "recommended: torch.jit.enable_onednn_fusion(True) before the "
+                "first call; the graph compiles into fused partitions during its first 2 calls",
+                "threads": 1,
             },
             "torch_version": torch.__version__,
         }

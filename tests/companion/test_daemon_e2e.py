@@ -287,6 +287,9 @@ def test_flies_hovers_recovers_and_yields_to_the_pilot(
         monitor.close()
     messages = list(LogReader(daemon_log(tmp_path)).messages())
     events = [m.json()["event"] for m in messages if m.topic == TOPIC_HEALTH]
+    loaded = next(m.json() for m in messages if m.json().get("event") == "policy loaded")
+    assert loaded["detail"]["sha256"] == policy.sha256
+    assert loaded["detail"]["fused"] is policy.fused and loaded["detail"]["warmup_ms"] > 0
     assert "active -> hover" in events and "hover -> active" in events
     assert "active -> pilot" in events and events[-1] == "stopped"
     released = next(

@@ -207,6 +207,9 @@ def test_config_validation_and_from_dict(tmp_path: Path) -> None:
     cfg = PolicyConfig.from_dict({"model_path": "models/p.pt", "threads": 2}, base_dir=tmp_path)
     assert cfg.model_path == tmp_path / "models" / "p.pt" and cfg.threads == 2
     assert (cfg.max_speed_mps, cfg.warmup_runs, cfg.sha256) == (10.0, 3, None)
+    assert cfg.graph_fusion is True
+    with pytest.raises(ConfigError, match="policy.graph_fusion: expected true or false, got 'no'"):
+        PolicyConfig(model_path="p.pt", graph_fusion="no")  # type: ignore[arg-type]
     assert PolicyConfig(model_path="p.pt", sha256="AB" * 32).sha256 == "ab" * 32
     with pytest.raises(ConfigError, match=r"unknown key\(s\) 'path'"):
         PolicyConfig.from_dict({"path": "x.pt"})
