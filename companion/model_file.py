@@ -88,7 +88,7 @@ def enable_graph_fusion(enabled: bool = True) -> bool:
     """Turn TorchScript's oneDNN Graph fuser on or off (process-wide); True if it is now on.
 
     With it on, a frozen policy graph is compiled into fused oneDNN partitions during its first
-    two calls (measured 1.3-1.5x faster at batch 1 on one thread, docs/BENCHMARKS.md). A module's
+    two calls (measured about 1.5x faster at batch 1 on one thread, docs/BENCHMARKS.md). A module's
     compiled plan is kept, so the setting counts at a module's first calls. A torch build without
     oneDNN (some ARM builds) cannot turn it on: this returns False and the policy runs unfused.
     """

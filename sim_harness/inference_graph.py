@@ -5,7 +5,7 @@ Same function as `DroNet` (outputs agree to float rounding; the export checks 1e
 called by `companion.policy.Policy.load`), which after two calls compiles the frozen graph into
 fused oneDNN partitions: each conv with its ReLU or its residual add, each pre-activation batch
 norm with its ReLU, the pool, the head. Measured single-thread, batch 1 on this project's 2-core
-VM (`benchmarks/cnn_latency.py`, docs/BENCHMARKS.md), that is about 1.3-1.5x faster than the best
+VM (`benchmarks/cnn_latency.py`, docs/BENCHMARKS.md), that is about 1.5x faster than the best
 unfused graph.
 
 One change to the network's own layers, so that nothing but an integer-to-float cast and a pad
@@ -20,8 +20,9 @@ Everything else (max pool, residual blocks, `bn_out`, head) is the eager module'
 Grad-CAM keep using `DroNet`; only the exported file runs this.
 
 Without the fuser (a loader that does not enable it, or a torch build without oneDNN Graph) the
-same file runs unfused, about 8 % slower than the hand-tuned unfused graph it replaced (sliced max
-pool, folded batch norms, im2col shortcuts), which the fuser cannot fuse.
+same file runs unfused: 5-6 % slower at batch 1 and 5-8 % faster at batch 9 than the hand-tuned
+unfused graph it replaced (sliced max pool, folded batch norms, im2col shortcuts), whose custom
+operators the fuser cannot fuse.
 """
 
 from __future__ import annotations
