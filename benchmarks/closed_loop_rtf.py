@@ -24,10 +24,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from sim_harness.rollout import fly
-from sim_harness.scenarios import ScenarioConfig, build_scenario
-from sim_harness.vision_controller import VisionControlConfig, VisionController, load_policy
-from sim_harness.world import SimRates
+from sim_harness.experiments.vision_controller import (
+    VisionControlConfig,
+    VisionController,
+    load_policy,
+)
+from sim_harness.sim.rollout import fly
+from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
+from sim_harness.sim.world import SimRates
 
 STAGES = ("render", "inference", "physics", "other")
 

@@ -40,8 +40,8 @@ import numpy as np
 import torch
 
 from companion.model_file import enable_graph_fusion, graph_is_fused
-from sim_harness.export import export_policy, load_eager_model
-from sim_harness.model import DroNet, build_model
+from sim_harness.learning.export import export_policy, load_eager_model
+from sim_harness.learning.model import DroNet, build_model
 
 Policy = Callable[[torch.Tensor], torch.Tensor]
 WARMUP_CALLS = 50  # compiles the fused plan (2 calls), then lets allocator and caches settle

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_harness.controllers import TeacherController
-from sim_harness.rollout import fly
-from sim_harness.scenarios import ScenarioConfig, build_scenario
-from sim_harness.world import SimRates
+from sim_harness.sim.controllers import TeacherController
+from sim_harness.sim.rollout import fly
+from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
+from sim_harness.sim.world import SimRates
 
 
 def measure(n_agents: int, sim_seconds: float, repeats: int, rates: SimRates) -> dict[str, float]:

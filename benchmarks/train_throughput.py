@@ -3,7 +3,7 @@
     python benchmarks/train_throughput.py [--samples 1536] [--threads 2] [--device cpu]
     python benchmarks/train_throughput.py --dataset data/quick-s0      # + loader from the memmap
 
-Trains with `sim_harness.train.train_on` (batch 128, the paper's SGD, channels_last on CPU) on
+Trains with `learning.train.train_on` (batch 128, the paper's SGD, channels_last on CPU) on
 random uint8 images for `--epochs` epochs and reports each epoch's training samples/s (the first
 epoch includes warm-up). With `--dataset`, also times the loader alone: sorted random batches of
 128 fancy-indexed from the training split's memory-mapped images, as the loop reads them.
@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sim_harness.batches import InMemorySplit, load_batch, shuffled_batches
-from sim_harness.train import TrainConfig, resolve_device, train_on
+from sim_harness.learning.batches import InMemorySplit, load_batch, shuffled_batches
+from sim_harness.learning.train import TrainConfig, resolve_device, train_on
 
 
 def loop_throughput(samples: int, epochs: int, device: str, threads: int) -> list[float]:

@@ -2,4 +2,6 @@
 
 `spec` (parameters and presets), `runs` (one run simulated), `store` (the on-disk format and the
 reader), `generate` (parallel, resumable, deterministic generation and merging), `inspect`.
+May import `sim_harness.sim` and `companion`'s contracts (aggregation, which flies the CNN, is in
+`experiments`).
 """

@@ -1,26 +1,18 @@
-"""`swarm-sim dataset generate | inspect | merge | aggregate`."""
+"""`swarm-sim dataset generate | inspect | merge` (`aggregate` flies the CNN: experiments/cli)."""
 
 from __future__ import annotations
 
 import argparse
 import shlex
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
-from sim_harness.dataset.aggregate import (
-    DEFAULT_EXPERIMENTS,
-    AggregateConfig,
-    aggregate,
-    default_rules,
-)
 from sim_harness.dataset.generate import generate, merge
 from sim_harness.dataset.inspect import inspect_dataset
 from sim_harness.dataset.spec import PRESETS, DatasetSpec
 from sim_harness.dataset.store import open_dataset
 from sim_harness.errors import ConfigError
-from sim_harness.suites import DEFAULT_MODEL_PATH
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -31,8 +23,8 @@ def _shard(text: str) -> tuple[int, int]:
     return index, count
 
 
-def add_dataset_commands(sub: Any) -> None:
-    """Register `dataset` and its subcommands on the top-level subparsers."""
+def add_dataset_commands(sub: Any) -> Any:
+    """Register `dataset` and its subcommands; return its subparsers (`aggregate` joins later)."""
     p = sub.add_parser("dataset", help="generate, inspect and merge camera datasets")
     dsub = p.add_subparsers(dest="dataset_command", required=True)
     g = dsub.add_parser(
@@ -62,34 +54,7 @@ def add_dataset_commands(sub: Any) -> None:
     m.add_argument("sources", type=Path, nargs="+")
     m.add_argument("--out", type=Path, required=True)
     m.set_defaults(handler=_merge)
-    a = dsub.add_parser(
-        "aggregate",
-        help="label the states an exported CNN flies into (DAgger round)",
-        description="Fly the CNN through the experiment scenarios on training seeds (0..999) and "
-        "label every state it visits with the teacher's command: a dataset to add to training "
-        "with `swarm-sim train --extra-train DIR`. Interrupted? Run the same command again.",
-    )
-    a.add_argument("--model", type=Path, default=None, help="policy file (default: shipped)")
-    a.add_argument("--out", type=Path, required=True, help="dataset folder")
-    a.add_argument("--runs", type=int, default=60, help="flights (default 60)")
-    a.add_argument(
-        "--experiments",
-        default=",".join(DEFAULT_EXPERIMENTS),
-        help="comma-separated, flown in turn (default %(default)s)",
-    )
-    a.add_argument("--seed-base", type=int, default=0, help="first scenario seed (< 1000)")
-    a.add_argument(
-        "--dispersion-m",
-        type=float,
-        default=7.0,
-        help="stop a flight once a pair is this far apart (default 7, the paper's; < r_max)",
-    )
-    a.add_argument(
-        "--max-run-s", type=float, default=15.0, help="stop a flight after this long (default 15)"
-    )
-    a.add_argument("--workers", type=int, default=1)
-    a.add_argument("--no-progress", action="store_true")
-    a.set_defaults(handler=_aggregate)
+    return dsub
 
 
 def command_line() -> str:
@@ -136,29 +101,6 @@ def _inspect(args: argparse.Namespace) -> int:
     report = inspect_dataset(dataset, args.out or args.dataset / "inspect")
     print(report["text"])
     print(f"\nwrote {report['histogram']} and {report['samples']}")
-    return 0
-
-
-def _aggregate(args: argparse.Namespace) -> int:
-    config = AggregateConfig(
-        model_path=args.model or DEFAULT_MODEL_PATH,
-        runs=args.runs,
-        experiments=tuple(e.strip() for e in args.experiments.split(",") if e.strip()),
-        seed_base=args.seed_base,
-        workers=args.workers,
-        rules=default_rules(args.dispersion_m, args.max_run_s),
-    )
-    started = time.perf_counter()
-    try:
-        dataset = aggregate(args.out, config, not args.no_progress, command_line())
-    except KeyboardInterrupt:
-        print(f"swarm-sim: interrupted; finished runs are kept in {args.out}", file=sys.stderr)
-        return 130
-    counts = dataset.manifest["counts"]
-    print(
-        f"wrote {args.out}: train {counts['train']}, val {counts['val']}, test {counts['test']} "
-        f"samples in {time.perf_counter() - started:.0f} s"
-    )
     return 0
 
 

@@ -48,10 +48,10 @@ from sim_harness.dataset.store import (
     write_run,
 )
 from sim_harness.errors import DatasetError
-from sim_harness.render import PyBulletRenderer
-from sim_harness.scene import SceneSpec
-from sim_harness.vehicle import VehicleParams
-from sim_harness.world import World
+from sim_harness.sim.render import PyBulletRenderer
+from sim_harness.sim.scene import SceneSpec
+from sim_harness.sim.vehicle import VehicleParams
+from sim_harness.sim.world import World
 
 log = logging.getLogger(__name__)
 

@@ -18,10 +18,10 @@ from companion.camera.layout import IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX
 from companion.flocking import FlockingParams, pairwise_offsets, reynolds_from_offsets
 from companion.frames import quat_to_rotmat, world_to_body
 from sim_harness.dataset.spec import TERMINATIONS, DatasetSpec, run_rng, sample_in_cone
-from sim_harness.render import Renderer
-from sim_harness.scenarios import spawn_positions
-from sim_harness.vehicle import VehicleModel, VehicleParams
-from sim_harness.world import World
+from sim_harness.sim.render import Renderer
+from sim_harness.sim.scenarios import spawn_positions
+from sim_harness.sim.vehicle import VehicleModel, VehicleParams
+from sim_harness.sim.world import World
 
 FloatArray = NDArray[np.float64]
 

@@ -30,7 +30,7 @@ import numpy as np
 from companion.flocking import FlockingParams
 from companion.validation import require_int_range, require_positive, require_range
 from sim_harness.errors import ConfigError
-from sim_harness.world import SimRates
+from sim_harness.sim.world import SimRates
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 TERMINATIONS: tuple[str, ...] = ("arrival", "collision", "dispersion", "ground", "time_limit")

@@ -17,6 +17,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from companion.frames import quat_from_euler_zyx
 from companion.validation import require_non_negative, require_positive, require_vector3
 
 FloatArray = NDArray[np.float64]
@@ -40,17 +41,7 @@ def attitude_from_thrust(body_z_ned: FloatArray, yaw_ned_rad: float) -> FloatArr
     forward, right = cy * zn + sy * ze, -sy * zn + cy * ze  # body z in the heading frame
     roll = -math.asin(max(-1.0, min(1.0, right)))
     pitch = math.atan2(forward, zd)
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    ch, sh = math.cos(yaw_ned_rad / 2), math.sin(yaw_ned_rad / 2)
-    q = np.array(
-        [
-            cr * cp * ch + sr * sp * sh,
-            sr * cp * ch - cr * sp * sh,
-            cr * sp * ch + sr * cp * sh,
-            cr * cp * sh - sr * sp * ch,
-        ]
-    )
+    q = quat_from_euler_zyx(roll, pitch, yaw_ned_rad)
     return q if q[0] >= 0.0 else -q
 
 

@@ -32,8 +32,8 @@ def untrained_policy_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """
     import torch
 
-    from sim_harness.export import export_policy
-    from sim_harness.model import build_model
+    from sim_harness.learning.export import export_policy
+    from sim_harness.learning.model import build_model
 
     torch.manual_seed(0)
     model = build_model(pixel_mean=120.0, pixel_std=50.0).eval()

@@ -1,0 +1,260 @@
+"""Dataset aggregation (DAgger, Ross et al. 2011): samples from the states the CNN flies into.
+
+The paper's dataset (`generate`) records random *linear* trajectories. A CNN trained on it meets
+other states when it flies the flock, most of all with opposing goals, where the two groups pull
+apart and the learned cohesion must hold them (docs/BENCHMARKS.md, "Where the CNN fails"). One
+aggregation round flies the current exported policy through the experiment scenarios on training
+seeds (0 and up; evaluation uses 1000 and up, so the bar's flights are never seen) and labels every
+state it visits with the teacher's Reynolds command, exactly as `generate` labels its own:
+
+- the images are the ones the CNN was given (rendered at capture time, same renderer);
+- the target is the teacher's separation + cohesion from the true positions, rotated into the
+  body frame with the capture-time attitude (`runs.teacher_targets`);
+- a flight stops as a dataset run stops (`runs.termination`): dispersion (> 7 m, the paper's
+  dataset domain), arrival, ground or the time limit (15 s); the collision rule is 0.5 m instead
+  of 1 m (`default_rules`), so the near misses the CNN flies into are labelled too. A round can
+  widen the dispersion rule (up to r_max) and fly longer, to label the stretched flocks of a
+  CNN whose cohesion is too weak (`--dispersion-m 12 --max-run-s 30`).
+
+The result is a normal dataset folder (same store, manifest and `open_dataset`); its manifest
+says `"kind": "aggregated"` and names the policy (SHA-256), the experiments and the seeds. Run k
+flies experiment `experiments[k % len(experiments)]` with scenario seed `seed_base + k`; runs with
+k % 10 == 8 go to the validation split, k % 10 == 9 to the test split (repeat an experiment in
+the list to fly it more often). Runs are stored atomically
+as they finish, so an interrupted aggregation resumes with the same command. Training uses it with
+`swarm-sim train --extra-train DIR` (added to the base dataset's training split).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from companion.validation import require_int_range
+from sim_harness.dataset.generate import check_or_write_spec, finalize
+from sim_harness.dataset.runs import (
+    RunData,
+    RunTiming,
+    sample_arrays,
+    teacher_targets,
+    termination,
+)
+from sim_harness.dataset.spec import SPLITS, DatasetSpec
+from sim_harness.dataset.store import Dataset, remove_partial_files, stored_runs, write_run
+from sim_harness.errors import ConfigError
+from sim_harness.experiments.suites import EVAL_SEED_BASE, EXPERIMENTS, SHIPPED_MODEL_PATH
+from sim_harness.experiments.vision_controller import (
+    BatchPolicy,
+    VisionControlConfig,
+    VisionController,
+    load_policy,
+)
+from sim_harness.sim.rollout import fly
+from sim_harness.sim.scenarios import build_scenario
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+# Opposing-goal flights end early (dispersion), so they are flown twice as often.
+DEFAULT_EXPERIMENTS: tuple[str, ...] = ("common", "opposing", "opposing", "self-propelled")
+
+
+def default_rules(dispersion_m: float = 7.0, max_run_s: float = 15.0) -> DatasetSpec:
+    """The dataset's stop rules, except: a flight ends at 0.5 m (drones ~0.5 m across touch),
+    not 1 m, since a CNN flight that dips under 1 m is exactly what should be labelled; and
+    after 15 s, since later states of a common-goal flight repeat earlier ones.
+
+    `dispersion_m` above the paper's 7 m labels the stretched flocks a CNN with weak cohesion
+    drifts into (opposing goals); it must stay under the perception radius r_max, where the
+    teacher still sees every agent. Fly such rounds longer (`max_run_s`): the stretch is slow."""
+    return DatasetSpec(collision_m=0.5, dispersion_m=dispersion_m, max_run_s=max_run_s)
+
+
+@dataclass(frozen=True)
+class AggregateConfig:
+    """One aggregation round: which policy flies, where, how many runs."""
+
+    model_path: Path = SHIPPED_MODEL_PATH
+    runs: int = 60
+    experiments: tuple[str, ...] = DEFAULT_EXPERIMENTS
+    seed_base: int = 0
+    workers: int = 1
+    rules: DatasetSpec = field(default_factory=default_rules)  # stop rules, flocking gains
+
+    def __post_init__(self) -> None:
+        require_int_range("aggregate.runs", self.runs, 10, 100_000)
+        require_int_range("aggregate.workers", self.workers, 1, 256)
+        require_int_range("aggregate.seed_base", self.seed_base, 0, EVAL_SEED_BASE - 1)
+        if self.seed_base + self.runs > EVAL_SEED_BASE:
+            raise ConfigError(
+                f"aggregate.runs: seeds {self.seed_base}..{self.seed_base + self.runs - 1} reach "
+                f"the evaluation seeds (>= {EVAL_SEED_BASE}); use at most "
+                f"{EVAL_SEED_BASE - self.seed_base} runs"
+            )
+        r_max = self.rules.flocking.r_max_m
+        if self.rules.dispersion_m >= r_max:
+            raise ConfigError(
+                f"aggregate.dispersion_m must be < the perception radius r_max ({r_max:g} m), "
+                f"got {self.rules.dispersion_m:g}"
+            )
+        if not self.experiments:
+            raise ConfigError("aggregate.experiments: name at least one experiment")
+        for key in self.experiments:
+            if key not in EXPERIMENTS:
+                raise ConfigError(
+                    f"aggregate.experiments: unknown experiment {key!r}; choose from "
+                    f"{', '.join(EXPERIMENTS)}"
+                )
+
+    def split_of(self, k: int) -> str:
+        return {8: "val", 9: "test"}.get(k % 10, "train")
+
+    def experiment_of(self, k: int) -> str:
+        return self.experiments[k % len(self.experiments)]
+
+    def describe(self, model_sha256: str) -> dict[str, Any]:
+        return {
+            "kind": "aggregated",
+            "policy": {"path": str(self.model_path), "sha256": model_sha256},
+            "experiments": list(self.experiments),
+            "runs": self.runs,
+            "seed_base": self.seed_base,
+            "splits": "run k: val if k % 10 == 8, test if k % 10 == 9, else train",
+        }
+
+
+class _Recorder:
+    """Wraps the CNN controller: keeps every image it is given and the teacher's label for it."""
+
+    def __init__(self, inner: VisionController, rules: DatasetSpec) -> None:
+        self.inner = inner
+        self.rules = rules
+        self.name = inner.name
+        self.senses = inner.senses
+        self.images: list[NDArray[np.uint8]] = []
+        self.rows: dict[str, list[FloatArray]] = {}
+
+    def reset(self, n_agents: int) -> None:
+        self.inner.reset(n_agents)
+
+    def stage_time_s(self) -> dict[str, float]:
+        return self.inner.stage_time_s()
+
+    def command(self, observation: Any) -> FloatArray:
+        setpoint = self.inner.command(observation)
+        own = observation.own
+        n = own.pos_world_enu.shape[0]
+        teacher = teacher_targets(own.pos_world_enu, own.q_world_body, self.rules.flocking)
+        self.images.append(np.array(observation.images, dtype=np.uint8))
+        for key, value in (
+            ("rey_body", teacher["rey_body"]),
+            ("rey_world", teacher["rey_world"]),
+            ("pos", own.pos_world_enu),
+            ("vel", own.vel_world_enu),
+            ("q", own.q_world_body),
+            ("t", np.full(n, own.time_s)),
+            ("n_nb", teacher["n_neighbours"]),
+            ("nearest", teacher["nearest_m"]),
+            ("cmd", setpoint),
+        ):
+            self.rows.setdefault(key, []).append(np.array(value, dtype=np.float64))
+        return setpoint
+
+
+def fly_and_record(config: AggregateConfig, k: int, policy: BatchPolicy) -> RunData:
+    """Run k of the round: the CNN flies its scenario; every visited state becomes samples."""
+    experiment = EXPERIMENTS[config.experiment_of(k)]
+    scenario_config = experiment.scenario_config(config.seed_base + k)
+    scenario = build_scenario(scenario_config)
+    rules = config.rules
+    law = VisionControlConfig.from_flocking(scenario_config.flocking)
+    recorder = _Recorder(VisionController(policy, law, rules.rates.control_dt_s), rules)
+    mig = scenario.migration_points
+
+    def stop_when(pos: FloatArray, t_s: float) -> str | None:
+        return termination(rules, pos, mig, t_s)
+
+    flight = fly(scenario, recorder, rules.rates, stop_when=stop_when)
+    n_steps, n = len(recorder.images), scenario.n_agents
+    reason = flight.stop_reason if flight.stop_reason != "arrived" else "arrival"
+    cmd = recorder.rows.pop("cmd")
+    arrays = sample_arrays(recorder.rows, n_steps, n, np.concatenate(cmd))
+    stages = flight.stage_time_s
+    timing = RunTiming(  # the teacher labels inside the controller's step, after the CNN
+        render_s=stages.get("render", 0.0),
+        physics_s=stages.get("physics", 0.0),
+        teacher_s=max(stages.get("control", 0.0) - stages.get("inference", 0.0), 0.0),
+    )
+    # the dataset's (3,) migration point field: agent 0's (NaN without one)
+    return RunData(
+        config.split_of(k),
+        k,
+        reason,
+        np.asarray(mig[0], dtype=np.float64),
+        np.concatenate(recorder.images),
+        arrays,
+        timing,
+    )
+
+
+_worker_policy: Any = None
+
+
+def _init_worker(model_path: Path) -> None:
+    global _worker_policy
+    _worker_policy = load_policy(model_path, threads=1)
+
+
+def _make_run(root: Path, config: AggregateConfig, k: int) -> int:
+    run = fly_and_record(config, k, _worker_policy)
+    write_run(root, run)
+    return run.n_samples
+
+
+def aggregate(
+    root: str | Path, config: AggregateConfig, progress: bool = True, command: str = ""
+) -> Dataset:
+    """Fly (or resume) one aggregation round into `root`; returns the dataset when complete."""
+    root = Path(root)
+    load_policy(config.model_path, threads=1).close()  # refuse a bad file before any flight
+    sha = hashlib.sha256(Path(config.model_path).read_bytes()).hexdigest()
+    rules = config.rules
+    check_or_write_spec(root, rules)
+    described = config.describe(sha)
+    marker = root / "aggregation.json"
+    if marker.exists():
+        previous = json.loads(marker.read_text())
+        if previous != described:
+            changed = sorted(k for k in described if previous.get(k) != described[k])
+            raise ConfigError(
+                f"{root} holds an aggregation with other settings ({', '.join(changed)}); "
+                "use another folder or the same command"
+            )
+    else:
+        marker.write_text(json.dumps(described, indent=2) + "\n")
+    remove_partial_files(root)
+    done = {k for split in SPLITS for k in stored_runs(root, split)}
+    todo = [k for k in range(config.runs) if k not in done]
+    ctx = mp.get_context("spawn")
+    with (
+        tqdm(total=config.runs, initial=len(done), unit="run", disable=not progress) as bar,
+        ProcessPoolExecutor(
+            config.workers, ctx, initializer=_init_worker, initargs=(config.model_path,)
+        ) as pool,
+    ):
+        for n_samples in pool.map(_make_run, [root] * len(todo), [config] * len(todo), todo):
+            bar.update()
+            bar.set_postfix(samples=n_samples)
+    runs = {split: sorted(stored_runs(root, split)) for split in SPLITS}
+    extra = {"aggregation": described}
+    return finalize(root, rules, runs, command, extra=extra, id_extra=described)

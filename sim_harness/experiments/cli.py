@@ -1,0 +1,227 @@
+"""`swarm-sim demo` and `swarm-sim experiments`: teacher and CNN side by side, with a report.
+
+swarm-sim demo                                   # 9 drones, common + opposing goals, 1 seed
+swarm-sim experiments --suite paper --seeds 5 --model models/swarm_cnn.pt --out runs/paper
+swarm-sim experiments --suite generalization --workers 2
+swarm-sim experiments --suite bar                 # 10 evaluation seeds: the issue's bar
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from companion.errors import ModelError
+from sim_harness.dataset.cli import command_line
+from sim_harness.experiments.aggregate import (
+    DEFAULT_EXPERIMENTS,
+    AggregateConfig,
+    aggregate,
+    default_rules,
+)
+from sim_harness.experiments.suites import (
+    DEFAULT_SEEDS,
+    EVAL_SEED_BASE,
+    LABELS,
+    SHIPPED_LOW_PASS_HZ,
+    SHIPPED_MODEL_PATH,
+    SUITES,
+    SuiteConfig,
+)
+from sim_harness.sim.world import SimRates
+
+if TYPE_CHECKING:
+    from sim_harness.experiments.runner import RunRecord
+
+log = logging.getLogger(__name__)
+
+DEMO_SEEDS = 1  # one CNN flight each of common (~45 s wall) and opposing (~80 s) on 2 cores
+HOW_TO_GET_A_MODEL = (
+    "make one with `swarm-sim dataset generate --preset quick`, "
+    "`swarm-sim train --dataset data/quick-s0`, then `swarm-sim export --checkpoint "
+    "runs/train/quick-s0 --dataset data/quick-s0 --out models/swarm_cnn.pt`; or pass --model PATH"
+)
+
+
+def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_help: str) -> None:
+    p.add_argument(
+        "--model",
+        type=Path,
+        default=SHIPPED_MODEL_PATH,
+        help=f"exported policy file (default {SHIPPED_MODEL_PATH})",
+    )
+    p.add_argument("--seeds", type=int, default=None, help=seeds_help)
+    p.add_argument(
+        "--seed-base",
+        type=int,
+        default=EVAL_SEED_BASE,
+        help=f"first scenario seed (default {EVAL_SEED_BASE}; evaluation seeds are >= 1000)",
+    )
+    p.add_argument("--out", type=Path, default=default_out, help=f"folder (default {default_out})")
+    p.add_argument("--workers", type=int, default=1, help="flights in parallel (default 1)")
+    p.add_argument(
+        "--low-pass",
+        type=_cutoff,
+        default=SHIPPED_LOW_PASS_HZ,
+        metavar="HZ",
+        help="low-pass the CNN output with this cut-off, or 'off' "
+        f"(default {SHIPPED_LOW_PASS_HZ:g}, what the shipped model is flown with)",
+    )
+    p.add_argument(
+        "--duration", type=float, default=None, help="cut every flight at this many seconds"
+    )
+    p.add_argument("--no-gradcam", action="store_true", help="skip the Grad-CAM strip")
+    p.add_argument("--quiet", action="store_true", help="no line per flight")
+
+
+def _cutoff(text: str) -> float | None:
+    """`--low-pass`: a cut-off in Hz, or `off`."""
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a cut-off in Hz or 'off', got {text!r}"
+        ) from None
+
+
+def add_experiment_commands(sub: Any) -> None:
+    """Register `demo` and `experiments` on the top-level subparsers."""
+    demo = sub.add_parser(
+        "demo",
+        help="9 drones, common and opposing goals, flown by the shipped CNN and by the teacher",
+        description="The main job: flies the 9-drone common-goal and opposing-goals experiments "
+        "with the shipped model and with the position-based teacher (same seeds) and writes the "
+        "report. A few minutes on 2 cores.",
+    )
+    _add_common_options(demo, Path("runs/demo"), f"seeds per experiment (default {DEMO_SEEDS})")
+    demo.set_defaults(handler=_demo)
+    exp = sub.add_parser(
+        "experiments",
+        help="an experiment suite, teacher and CNN over several seeds, with its report",
+    )
+    exp.add_argument(
+        "--suite",
+        default="paper",
+        choices=sorted(SUITES),
+        help="paper (common, opposing), generalization (N 3 / 12, v_max 4, no goal), bar",
+    )
+    seeds_help = "seeds per experiment (default: " + ", ".join(
+        f"{k} {v}" for k, v in DEFAULT_SEEDS.items()
+    )
+    _add_common_options(exp, Path("runs/experiments"), seeds_help + ")")
+    exp.set_defaults(handler=_experiments)
+
+
+def _describe(record: RunRecord) -> str:
+    s = record.summary
+    end = f"arrived after {s['arrival_time_s']:.1f} s" if s["arrived"] else "time limit"
+    d_min = "n/a" if s["d_min_m"] is None else f"{s['d_min_m']:.2f} m"
+    d_max = "n/a" if s["d_max_m"] is None else f"{s['d_max_m']:.2f} m"
+    return (
+        f"{record.experiment} / {LABELS[record.controller]} / seed {record.seed}: {end}, "
+        f"d_min {d_min}, d_max {d_max}, contacts {s['physical_contacts']} "
+        f"({record.log.wall_time_s:.0f} s wall)"
+    )
+
+
+def _run(args: argparse.Namespace, suite: str, default_seeds: int | None) -> int:
+    if not args.model.exists():
+        raise ModelError(f"no model at {args.model}: {HOW_TO_GET_A_MODEL}")
+    config = SuiteConfig(
+        suite=suite,
+        model_path=args.model,
+        n_seeds=args.seeds if args.seeds is not None else default_seeds,
+        seed_base=args.seed_base,
+        low_pass_cutoff_hz=args.low_pass,
+        workers=args.workers,
+        rates=SimRates(),
+        duration_s=args.duration,
+    )
+    n_flights = 2 * len(config.experiment_list) * len(config.seeds)
+    print(f"{suite}: {n_flights} flights (teacher and CNN, seeds {config.seeds[0]}..)", flush=True)
+
+    def progress(record: RunRecord, done: int, total: int) -> None:
+        if not args.quiet:
+            print(f"[{done}/{total}] {_describe(record)}", flush=True)
+
+    # torch and matplotlib load here, not when the CLI starts.
+    from sim_harness.experiments.report import write_report
+    from sim_harness.experiments.runner import run_suite, save_runs
+    from sim_harness.experiments.stats import bar_checks
+
+    result = run_suite(config, on_run=progress)
+    save_runs(result, args.out)
+    report = write_report(result, args.out, gradcam=not args.no_gradcam)
+    for check in bar_checks(result):
+        print(f"bar: {'pass' if check.passed else 'FAIL'}: {check.name} ({check.detail})")
+    print(f"report: {report} (flights in {args.out / 'runs'})")
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    return _run(args, "paper", DEMO_SEEDS)
+
+
+def _experiments(args: argparse.Namespace) -> int:
+    return _run(args, args.suite, None)
+
+
+def add_aggregate_command(dsub: Any) -> None:
+    """Register `dataset aggregate` (a DAgger round flies the CNN) on the dataset subparsers."""
+    a = dsub.add_parser(
+        "aggregate",
+        help="label the states an exported CNN flies into (DAgger round)",
+        description="Fly the CNN through the experiment scenarios on training seeds (0..999) and "
+        "label every state it visits with the teacher's command: a dataset to add to training "
+        "with `swarm-sim train --extra-train DIR`. Interrupted? Run the same command again.",
+    )
+    a.add_argument("--model", type=Path, default=None, help="policy file (default: shipped)")
+    a.add_argument("--out", type=Path, required=True, help="dataset folder")
+    a.add_argument("--runs", type=int, default=60, help="flights (default 60)")
+    a.add_argument(
+        "--experiments",
+        default=",".join(DEFAULT_EXPERIMENTS),
+        help="comma-separated, flown in turn (default %(default)s)",
+    )
+    a.add_argument("--seed-base", type=int, default=0, help="first scenario seed (< 1000)")
+    a.add_argument(
+        "--dispersion-m",
+        type=float,
+        default=7.0,
+        help="stop a flight once a pair is this far apart (default 7, the paper's; < r_max)",
+    )
+    a.add_argument(
+        "--max-run-s", type=float, default=15.0, help="stop a flight after this long (default 15)"
+    )
+    a.add_argument("--workers", type=int, default=1)
+    a.add_argument("--no-progress", action="store_true")
+    a.set_defaults(handler=_aggregate)
+
+
+def _aggregate(args: argparse.Namespace) -> int:
+    config = AggregateConfig(
+        model_path=args.model or SHIPPED_MODEL_PATH,
+        runs=args.runs,
+        experiments=tuple(e.strip() for e in args.experiments.split(",") if e.strip()),
+        seed_base=args.seed_base,
+        workers=args.workers,
+        rules=default_rules(args.dispersion_m, args.max_run_s),
+    )
+    started = time.perf_counter()
+    try:
+        dataset = aggregate(args.out, config, not args.no_progress, command_line())
+    except KeyboardInterrupt:
+        print(f"swarm-sim: interrupted; finished runs are kept in {args.out}", file=sys.stderr)
+        return 130
+    counts = dataset.manifest["counts"]
+    print(
+        f"wrote {args.out}: train {counts['train']}, val {counts['val']}, test {counts['test']} "
+        f"samples in {time.perf_counter() - started:.0f} s"
+    )
+    return 0

@@ -1,0 +1,265 @@
+"""One Markdown report per suite, with its PNGs and a JSON of every number in it.
+
+`write_report(result, out_dir)` writes into `out_dir`:
+
+- `report.md`: the model and seeds, the bar (when the suite flew common and opposing goals), the
+  figures, one aggregate table per experiment (a row per controller), one table per experiment and
+  controller (a row per seed), the Grad-CAM strip and the timings;
+- `paper_figure.png`: the paper's layout (rows: teacher top view, CNN top view, distances, order;
+  columns: common and opposing goals), when both were flown;
+- `experiments_figure.png`: the same rows for the other experiments of the suite;
+- `gradcam.png`: one agent's view early in a CNN flight, with the Grad-CAM of its command;
+- `results.json`: the suite's configuration, model, tables, bar, timings and every run's summary.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from sim_harness.experiments import stats as suite_stats
+from sim_harness.experiments.gradcam_strip import save_gradcam_strip
+from sim_harness.experiments.runner import RunRecord, SuiteResult
+from sim_harness.experiments.suites import CONTROLLERS, EXPERIMENTS, LABELS
+from sim_harness.sim.plots import save_comparison_figure
+from sim_harness.sim.rollout import FlightLog
+
+log = logging.getLogger(__name__)
+
+GRADCAM_TIME_S = 1.0  # "early in the flight"
+
+
+def _num(x: float | None, digits: int = 2, unit: str = "") -> str:
+    return "—" if x is None else f"{x:.{digits}f}{unit}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return lines + [""]
+
+
+def _aggregate_table(table: dict[str, dict[str, Any]]) -> list[str]:
+    header = [
+        "controller",
+        "runs",
+        "no collision (< 1 m)",
+        "physical contacts",
+        "lowest d_min",
+        "highest d_max",
+        "mean order",
+        "arrived",
+        "median arrival",
+        "CNN / teacher",
+        "split",
+        "stalled",
+    ]
+    rows = []
+    for controller, row in table.items():
+        n = row["runs"]
+        ratio = row["arrival_ratio_to_teacher"] if controller != "teacher" else None
+        rows.append(
+            [
+                LABELS.get(controller, controller),
+                str(n),
+                f"{row['collision_free_runs']}/{n}",
+                f"{row['contact_runs']}/{n}",
+                _num(row["d_min_lowest_m"], unit=" m"),
+                _num(row["d_max_highest_m"], unit=" m"),
+                _num(row["order_mean"]),
+                f"{row['arrived_runs']}/{n}",
+                _num(row["arrival_median_s"], 1, " s"),
+                _num(ratio) + ("x" if ratio is not None else ""),
+                f"{row['split_runs']}/{n}",
+                "n/a" if row["stalled_runs"] is None else f"{row['stalled_runs']}/{n}",
+            ]
+        )
+    return _table(header, rows)
+
+
+def _runs_table(records: list[RunRecord]) -> list[str]:
+    header = ["seed", "end", "arrival", "d_min", "d_max", "mean order", "contacts", "split"]
+    rows = [
+        [
+            str(r.seed),
+            r.summary["stop_reason"],
+            _num(r.summary["arrival_time_s"], 1, " s"),
+            _num(r.summary["d_min_m"], unit=" m"),
+            _num(r.summary["d_max_m"], unit=" m"),
+            _num(r.summary["order_mean"]),
+            str(r.summary["physical_contacts"]),
+            "yes" if r.summary["flock_split"] else "no",
+        ]
+        for r in records
+    ]
+    return _table(header, rows)
+
+
+def _figure_columns(
+    result: SuiteResult, keys: Sequence[str]
+) -> dict[str, dict[str, list[FlightLog]]]:
+    return {EXPERIMENTS[k].title: {LABELS[c]: result.logs(k, c) for c in CONTROLLERS} for k in keys}
+
+
+def _figures(result: SuiteResult, out_dir: Path) -> list[tuple[Path, str]]:
+    flown = [e.key for e in result.config.experiment_list]
+    paper = [k for k in ("common", "opposing") if k in flown]
+    figures: list[tuple[Path, str]] = []
+    if len(paper) == 2:
+        path = save_comparison_figure(_figure_columns(result, paper), out_dir / "paper_figure.png")
+        figures.append((path, "The paper's figure: teacher and CNN, common and opposing goals"))
+    others = [k for k in flown if len(paper) < 2 or k not in paper]
+    if others:
+        path = save_comparison_figure(
+            _figure_columns(result, others), out_dir / "experiments_figure.png", dpi=70
+        )
+        figures.append((path, "Teacher and CNN, one column per experiment"))
+    return figures
+
+
+def _find_per_axis(metrics: Any) -> dict[str, Any] | None:
+    """The first `{"per_axis": ..., "overall": ...}` block in the test metrics, if any."""
+    if isinstance(metrics, dict):
+        if isinstance(metrics.get("per_axis"), dict):
+            return metrics
+        for value in metrics.values():
+            found = _find_per_axis(value)
+            if found is not None:
+                return found
+    return None
+
+
+def _model_lines(result: SuiteResult) -> list[str]:
+    meta = result.model_metadata
+    lines = [f"- Model: `{result.config.model_path}` (SHA-256 `{result.model_sha256}`)"]
+    dataset = meta.get("dataset")
+    if isinstance(dataset, dict) and dataset.get("id"):
+        counts = dataset.get("counts")
+        lines.append(f"- Trained on dataset `{dataset['id']}` (samples per split: {counts})")
+    block = _find_per_axis(meta.get("test_metrics"))
+    if block is not None:
+        r2 = {k: v.get("r2") for k, v in block["per_axis"].items() if isinstance(v, dict)}
+        overall = block.get("overall", {}).get("r2")
+        parts = ", ".join(f"{k} {_num(v)}" for k, v in r2.items())
+        lines.append(f"- Test split R²: {parts}; overall {_num(overall)}")
+    training = meta.get("training")
+    if isinstance(training, dict) and training.get("command"):
+        lines.append(f"- Training command: `{training['command']}`")
+    return lines
+
+
+def _timing_lines(result: SuiteResult) -> list[str]:
+    header = [
+        "experiment",
+        "controller",
+        "N",
+        "flights",
+        "render ms/step",
+        "inference ms/step",
+        "physics ms/step",
+        "real-time factor",
+    ]
+    rows = []
+    timings: dict[str, dict[str, Any]] = {}
+    for e in result.config.experiment_list:
+        for c in CONTROLLERS:
+            t = suite_stats.timing_row(result.records(e.key, c))
+            timings[f"{e.key}/{c}"] = t
+            rows.append(
+                [
+                    e.key,
+                    LABELS[c],
+                    str(e.n_agents),
+                    str(t["flights"]),
+                    _num(t["render_ms_per_step"], 1),
+                    _num(t["inference_ms_per_step"], 1),
+                    _num(t["physics_ms_per_step"], 1),
+                    _num(t["real_time_factor"]) + "x",
+                ]
+            )
+    return _table(header, rows)
+
+
+def write_report(result: SuiteResult, out_dir: Path, gradcam: bool = True) -> Path:
+    """Write `report.md`, its figures and `results.json` into `out_dir`; returns the report."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cfg = result.config
+    seeds = cfg.seeds
+    cutoff = cfg.low_pass_cutoff_hz
+    lines = [
+        f"# Suite `{cfg.suite}`: teacher and CNN, same seeds",
+        "",
+        *_model_lines(result),
+        f"- Seeds: {seeds[0]}..{seeds[-1]} ({len(seeds)} per experiment and controller; "
+        "evaluation seeds >= 1000, never used for training)",
+        f"- CNN low-pass filter: {'off' if cutoff is None else f'{cutoff:g} Hz cut-off'}; "
+        f"physics {cfg.rates.physics_hz} Hz, control {cfg.rates.control_hz} Hz"
+        + ("" if cfg.duration_s is None else f"; every flight cut at {cfg.duration_s:g} s"),
+        f"- {len(result.runs)} flights in {result.wall_time_s:.0f} s of wall time",
+        "",
+        "Collision: a pair under 1 m at any control step. Split: d_max >= r_max at some step. "
+        "Stalled: no arrival by the time limit (only for experiments with a common goal). "
+        "Arrival ratio: median CNN arrival time over the teacher's, same seeds.",
+        "",
+    ]
+    checks = suite_stats.bar_checks(result)
+    if checks:
+        passed = all(c.passed for c in checks)
+        lines += [f"## The bar: {'met' if passed else 'NOT met'}", ""]
+        lines += _table(
+            ["criterion", "result", "measured"],
+            [[c.name, "pass" if c.passed else "FAIL", c.detail] for c in checks],
+        )
+    lines += ["## Figures", ""]
+    for path, caption in _figures(result, out_dir):
+        lines += [f"![{caption}]({path.name})", "", f"*{caption}.*", ""]
+    tables: dict[str, Any] = {}
+    for e in cfg.experiment_list:
+        table = suite_stats.experiment_table(result, e.key)
+        tables[e.key] = table
+        lines += [f"## {e.title}", "", *_aggregate_table(table)]
+        for c in CONTROLLERS:
+            lines += [f"### {e.title}: {LABELS[c]}, per run", ""]
+            lines += _runs_table(result.records(e.key, c))
+    if gradcam:
+        strip = save_gradcam_strip(result, out_dir / "gradcam.png", GRADCAM_TIME_S)
+        if strip is not None:
+            lines += ["## Grad-CAM", "", f"![Grad-CAM]({strip.path.name})", "", strip.caption, ""]
+    lines += ["## Timings (wall clock, this machine)", "", *_timing_lines(result)]
+    report = out_dir / "report.md"
+    report.write_text("\n".join(lines).rstrip() + "\n")
+    _write_json(result, out_dir / "results.json", tables, checks)
+    return report
+
+
+def _write_json(
+    result: SuiteResult,
+    path: Path,
+    tables: dict[str, Any],
+    checks: list[suite_stats.BarCheck],
+) -> None:
+    cfg = result.config
+    data = {
+        "suite": cfg.suite,
+        "model": {"path": str(cfg.model_path), "sha256": result.model_sha256},
+        "seeds": list(cfg.seeds),
+        "low_pass_cutoff_hz": cfg.low_pass_cutoff_hz,
+        "duration_s": cfg.duration_s,
+        "rates": {"physics_hz": cfg.rates.physics_hz, "control_hz": cfg.rates.control_hz},
+        "wall_time_s": result.wall_time_s,
+        "tables": tables,
+        "bar": [{"name": c.name, "passed": c.passed, "detail": c.detail} for c in checks],
+        "timings": {
+            f"{e.key}/{c}": suite_stats.timing_row(result.records(e.key, c))
+            for e in cfg.experiment_list
+            for c in CONTROLLERS
+        },
+        "runs": [
+            {**r.summary, "experiment": r.experiment, "stage_time_s": r.log.stage_time_s}
+            for r in result.runs
+        ],
+    }
+    path.write_text(json.dumps(data, indent=2) + "\n")

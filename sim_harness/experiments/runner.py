@@ -1,0 +1,163 @@
+"""Flying the experiment suites (`sim_harness.experiments.suites`): teacher and CNN, same seeds.
+
+Every experiment of the suite is flown by both controllers over the suite's seeds. Flights run in
+this process (`workers=1`) or in a pool of spawned processes, each loading the policy once with one
+torch thread. Results are ordered by experiment, controller and seed, whatever the order in which
+the flights finish.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from companion.policy import Policy
+from sim_harness.experiments.suites import CONTROLLERS, EXPERIMENTS, SuiteConfig
+from sim_harness.experiments.vision_controller import (
+    VisionControlConfig,
+    VisionController,
+    load_policy,
+)
+from sim_harness.sim.controllers import Controller, TeacherController
+from sim_harness.sim.rollout import FlightLog, fly, save_flight, summarize
+from sim_harness.sim.scenarios import build_scenario
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """One flight of the suite."""
+
+    experiment: str
+    controller: str
+    seed: int
+    log: FlightLog
+    summary: dict[str, Any]
+
+
+@dataclass
+class SuiteResult:
+    """Every flight of a suite, plus what identifies the model that flew the CNN runs."""
+
+    config: SuiteConfig
+    runs: list[RunRecord]
+    model_sha256: str
+    model_metadata: dict[str, Any]
+    wall_time_s: float = 0.0
+
+    def records(self, experiment: str, controller: str) -> list[RunRecord]:
+        """The runs of one experiment and controller, in seed order."""
+        return [r for r in self.runs if r.experiment == experiment and r.controller == controller]
+
+    def logs(self, experiment: str, controller: str) -> list[FlightLog]:
+        return [r.log for r in self.records(experiment, controller)]
+
+
+@dataclass(frozen=True)
+class Job:
+    """One flight to fly: an experiment key, a controller ("teacher" or "cnn") and a seed."""
+
+    experiment: str
+    controller: str
+    seed: int
+
+
+def _jobs(config: SuiteConfig) -> list[Job]:
+    return [
+        Job(e.key, c, seed)
+        for e in config.experiment_list
+        for c in CONTROLLERS
+        for seed in config.seeds
+    ]
+
+
+def _controller(job: Job, config: SuiteConfig, policy: Policy | None) -> Controller:
+    flocking = EXPERIMENTS[job.experiment].scenario_config(job.seed).flocking
+    if job.controller == "teacher":
+        return TeacherController(flocking)
+    if policy is None:
+        raise RuntimeError("a CNN flight needs the policy")
+    law = VisionControlConfig.from_flocking(flocking, config.low_pass_cutoff_hz)
+    return VisionController(policy, law, config.rates.control_dt_s)
+
+
+def fly_job(job: Job, config: SuiteConfig, policy: Policy | None) -> RunRecord:
+    """Fly one (experiment, controller, seed) of the suite."""
+    experiment = EXPERIMENTS[job.experiment]
+    scenario = build_scenario(experiment.scenario_config(job.seed, config.duration_s))
+    flight = fly(scenario, _controller(job, config, policy), config.rates)
+    return RunRecord(job.experiment, job.controller, job.seed, flight, summarize(flight))
+
+
+_worker_policy: Policy | None = None  # one per pool process, loaded by `_init_worker`
+
+
+def _init_worker(model_path: Path) -> None:
+    global _worker_policy
+    _worker_policy = load_policy(model_path, threads=1)
+
+
+def _fly_in_worker(job: Job, config: SuiteConfig) -> RunRecord:
+    return fly_job(job, config, _worker_policy)
+
+
+def _run_jobs(
+    jobs: list[Job], config: SuiteConfig, policy: Policy
+) -> Iterator[tuple[Job, RunRecord]]:
+    if config.workers == 1:
+        for job in jobs:
+            yield job, fly_job(job, config, policy)
+        return
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(
+        config.workers, context, initializer=_init_worker, initargs=(config.model_path,)
+    ) as pool:
+        futures = {pool.submit(_fly_in_worker, job, config): job for job in jobs}
+        for future, job in futures.items():
+            yield job, future.result()
+
+
+def run_suite(
+    config: SuiteConfig, on_run: Callable[[RunRecord, int, int], None] | None = None
+) -> SuiteResult:
+    """Fly every experiment of the suite with both controllers; `on_run(record, done, total)`.
+
+    Raises `companion.errors.ModelError` if the model file is missing or fails verification
+    (before any flight).
+    """
+    started = time.perf_counter()
+    policy = load_policy(config.model_path, threads=1)
+    try:
+        jobs = _jobs(config)
+        records: dict[Job, RunRecord] = {}
+        for done, (job, record) in enumerate(_run_jobs(jobs, config, policy), start=1):
+            records[job] = record
+            if on_run is not None:
+                on_run(record, done, len(jobs))
+        return SuiteResult(
+            config=config,
+            runs=[records[job] for job in jobs],
+            model_sha256=policy.sha256,
+            model_metadata=policy.metadata,
+            wall_time_s=time.perf_counter() - started,
+        )
+    finally:
+        policy.close()
+
+
+def run_dir(out_dir: Path, record: RunRecord) -> Path:
+    """Where one run's log lives: `<out>/runs/<experiment>/<controller>/seed-<seed>`."""
+    return out_dir / "runs" / record.experiment / record.controller / f"seed-{record.seed}"
+
+
+def save_runs(result: SuiteResult, out_dir: Path) -> None:
+    """Every run's `steps.npz`, `summary.json` and `timing.json` (see `rollout.save_flight`)."""
+    for record in result.runs:
+        save_flight(record.log, run_dir(out_dir, record))

@@ -1,0 +1,247 @@
+"""`swarm-sim train | evaluate | export | gradcam`: the learning pipeline from the command line.
+
+    swarm-sim train --dataset data/quick-s0 --out runs/train/quick-s0      # --resume to continue
+    swarm-sim export --checkpoint runs/train/quick-s0 --dataset data/quick-s0 --out models/M.pt
+    swarm-sim evaluate --model models/M.pt --dataset data/quick-s0 --split test --out DIR
+    swarm-sim gradcam --model models/M.pt --dataset data/quick-s0 --samples 0,5,9 --out DIR
+
+`--model` takes a policy file (`.pt`, verified against its hash) or a training checkpoint (a run
+directory or a `.ckpt`); it defaults to the shipped model.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from companion.errors import ConfigError
+from sim_harness.dataset.cli import command_line
+from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
+
+SPLITS = ("train", "val", "test")
+
+
+def _samples(text: str) -> list[int]:
+    try:
+        samples = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected indices such as 0,5,9, got {text!r}") from exc
+    if not samples or min(samples) < 0:
+        raise argparse.ArgumentTypeError(f"expected non-negative indices, got {text!r}")
+    return samples
+
+
+def add_learning_commands(sub: Any) -> None:
+    """Register `train`, `evaluate`, `export` and `gradcam` on the top-level subparsers."""
+    t = sub.add_parser(
+        "train",
+        help="train the CNN on a dataset (paper hyper-parameters)",
+        description="Train the DroNet-style CNN with the paper's recipe. Interrupted? Run the same "
+        "command with --resume: it continues from the last completed epoch.",
+    )
+    t.add_argument("--dataset", type=Path, required=True, help="generated dataset folder")
+    t.add_argument("--out", type=Path, default=None, help="run folder (default runs/train/<data>)")
+    t.add_argument("--max-epochs", type=int, default=200, help="(default 200; early stop first)")
+    t.add_argument("--batch-size", type=int, default=128)
+    t.add_argument("--lr", type=float, default=5e-3)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    t.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    t.add_argument("--limit-train", type=int, default=None, help="train on N samples (quick runs)")
+    t.add_argument("--limit-val", type=int, default=None, help="validate on N samples")
+    t.add_argument("--resume", action="store_true", help="continue from OUT/last.ckpt")
+    t.add_argument(
+        "--extra-train",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="add this aggregated dataset's training split (repeatable; loads the splits in RAM)",
+    )
+    t.add_argument(
+        "--init-from",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="fine-tune: start from these weights (checkpoint or policy file)",
+    )
+    t.add_argument("--no-progress", action="store_true")
+    t.set_defaults(handler=_train)
+
+    e = sub.add_parser("evaluate", help="MSE, RMSE, R² and error breakdown on a dataset split")
+    e.add_argument("--model", type=Path, default=SHIPPED_MODEL_PATH, help="policy or checkpoint")
+    e.add_argument("--dataset", type=Path, required=True)
+    e.add_argument("--split", choices=SPLITS, default="test")
+    e.add_argument("--out", type=Path, default=None, help="default runs/eval/<model>-<split>")
+    e.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu")
+    e.add_argument("--batch-size", type=int, default=512)
+    e.set_defaults(handler=_evaluate)
+
+    x = sub.add_parser("export", help="evaluate a checkpoint on the test split, write the policy")
+    x.add_argument("--checkpoint", type=Path, required=True, help="run folder or .ckpt")
+    x.add_argument("--dataset", type=Path, required=True, help="the dataset it was trained on")
+    x.add_argument("--out", type=Path, default=SHIPPED_MODEL_PATH, help="policy file (.pt)")
+    x.add_argument("--eval-out", type=Path, default=None, help="default runs/eval/<out>-test")
+    x.set_defaults(handler=_export)
+
+    g = sub.add_parser("gradcam", help="Grad-CAM saliency PNGs for dataset samples")
+    g.add_argument("--model", type=Path, default=SHIPPED_MODEL_PATH, help="policy or checkpoint")
+    g.add_argument("--dataset", type=Path, required=True)
+    g.add_argument("--split", choices=SPLITS, default="test")
+    g.add_argument("--samples", type=_samples, default=[0], help="indices, e.g. 0,5,9")
+    g.add_argument(
+        "--target",
+        choices=("all", "speed", "x", "y", "z"),
+        default="all",
+        help="scalar explained: |v|, or one body axis' |v_k| (default all four rows)",
+    )
+    g.add_argument("--out", type=Path, default=Path("runs/gradcam"))
+    g.set_defaults(handler=_gradcam)
+
+
+def _train(args: argparse.Namespace) -> int:
+    from sim_harness.learning.train import TrainConfig, train
+
+    config = TrainConfig(
+        dataset=args.dataset,
+        out_dir=args.out or Path("runs/train") / args.dataset.name,
+        max_epochs=args.max_epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        device=args.device,
+        threads=args.threads,
+        limit_train=args.limit_train,
+        limit_val=args.limit_val,
+        resume=args.resume,
+        extra_train=tuple(args.extra_train),
+        init_from=args.init_from,
+        progress=not args.no_progress,
+        command=command_line(),
+    )
+    result = train(config)
+    how = "stopped early" if result.stopped_early else "reached the epoch limit"
+    print(
+        f"{how} after {result.epochs_run} epochs ({result.wall_time_s / 60:.1f} min): best "
+        f"validation MSE {result.best_val_loss:.4f} (m/s)² at epoch {result.best_epoch} "
+        f"(untrained {result.initial_val_loss:.4f})"
+    )
+    print(f"wrote {result.out_dir}/ (best.ckpt, last.ckpt, metrics.jsonl, learning_curve.png)")
+    return 0
+
+
+def _describe_metrics(metrics: dict[str, Any]) -> str:
+    def r2(value: float | None) -> str:
+        return "n/a" if value is None else f"{value:.3f}"
+
+    axes = ", ".join(f"{axis} {r2(m['r2'])}" for axis, m in metrics["per_axis"].items())
+    overall = metrics["overall"]
+    return (
+        f"n = {metrics['n_samples']}: RMSE {overall['rmse']:.3f} m/s, R² {r2(overall['r2'])} "
+        f"(per axis: {axes})"
+    )
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from sim_harness.dataset.store import open_dataset
+    from sim_harness.learning.evaluate import evaluate_split
+    from sim_harness.learning.export import load_for_inference
+    from sim_harness.learning.train import resolve_device
+
+    device = resolve_device(args.device)
+    model, _ = load_for_inference(args.model, device)
+    split = open_dataset(args.dataset).split(args.split)
+    out = args.out or Path("runs/eval") / f"{args.model.stem}-{args.split}"
+    report = evaluate_split(
+        model, split, out, args.batch_size, device, title=f"{args.model} on {args.split}"
+    )
+    print(_describe_metrics(report["metrics"]))
+    print(f"wrote {out}/ (metrics.json, predictions.npz, pred_vs_target.png, error_breakdown.png)")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    import torch
+
+    from sim_harness.dataset.store import open_dataset
+    from sim_harness.learning.checkpoint import LAST_NAME, CheckpointError, load_checkpoint
+    from sim_harness.learning.evaluate import evaluate_split
+    from sim_harness.learning.export import export_policy, load_eager_model, to_torchscript
+
+    if args.out.suffix != ".pt":
+        raise ConfigError(f"out: the policy file must end in .pt, got {args.out}")
+    model, state = load_eager_model(args.checkpoint)
+    dataset = open_dataset(args.dataset)
+    if state["dataset"]["id"] != dataset.id:
+        raise CheckpointError(
+            f"{args.checkpoint} was trained on dataset {state['dataset']['id']}, "
+            f"but {args.dataset} is {dataset.id}"
+        )
+    run_dir = args.checkpoint if args.checkpoint.is_dir() else args.checkpoint.parent
+    last = load_checkpoint(run_dir / LAST_NAME) if (run_dir / LAST_NAME).exists() else state
+    scripted = to_torchscript(model)
+    test = dataset.split("test")
+    eval_out = args.eval_out or Path("runs/eval") / f"{args.out.stem}-test"
+    report = evaluate_split(scripted, test, eval_out, title=f"{args.out.name} on test")
+    training = {
+        "command": state["command"],
+        "epochs_run": last["epoch"],
+        "best_epoch": state["best_epoch"],
+        "best_val_mse": state["best_val_loss"],
+        "initial_val_mse": state["initial_val_loss"],
+        "wall_time_s": last["wall_time_s"],
+        "config": state["config"],
+    }
+    result = export_policy(
+        model,
+        args.out,
+        dataset.manifest,
+        {"split": "test", **report},
+        training,
+        scripted=scripted,
+        check_images_u8=torch.from_numpy(test.images[: min(16, test.n_samples)].copy()),
+    )
+    print(f"test {_describe_metrics(report['metrics'])}")
+    print(
+        f"wrote {result.path} (sha256 {result.sha256[:16]}..., exported vs eager "
+        f"{result.max_abs_diff_mps:.1e} m/s), {result.path.with_suffix('.json').name}, "
+        f"{result.weights_path.name}; evaluation in {eval_out}/"
+    )
+    return 0
+
+
+def _gradcam(args: argparse.Namespace) -> int:
+    from sim_harness.dataset.store import open_dataset
+    from sim_harness.learning.export import load_eager_model
+    from sim_harness.learning.gradcam import TARGETS, grad_cam, save_gradcam_png
+
+    model, _ = load_eager_model(args.model)
+    split = open_dataset(args.dataset).split(args.split)
+    bad = [i for i in args.samples if i >= split.n_samples]
+    if bad:
+        raise ConfigError(
+            f"samples: {bad} outside the allowed range [0, {split.n_samples - 1}] "
+            f"of the {args.split} split"
+        )
+    targets = TARGETS if args.target == "all" else (args.target,)
+    meta = split.meta
+    for i in args.samples:
+        image = split.images[i]
+        maps = {}
+        for target in targets:
+            result = grad_cam(model, image, target)
+            maps["|v|" if target == "speed" else f"|v_{target}|"] = result.heatmap[0]
+        pred = result.vel_body_flu[0]
+        truth = split.targets[i]
+        title = (
+            f"{args.split} sample {i}: predicted ({pred[0]:+.2f}, {pred[1]:+.2f}, "
+            f"{pred[2]:+.2f}) m/s, target ({truth[0]:+.2f}, {truth[1]:+.2f}, {truth[2]:+.2f}) "
+            "m/s body FLU"
+        )
+        if "n_neighbours" in meta and "nearest_m" in meta:
+            neighbours, nearest_m = int(meta["n_neighbours"][i]), float(meta["nearest_m"][i])
+            title += f"; {neighbours} neighbours, nearest {nearest_m:.1f} m"
+        path = save_gradcam_png(image, maps, args.out / f"{args.split}-{i:06d}.png", title)
+        print(f"wrote {path}")
+    return 0

@@ -1,0 +1,229 @@
+"""Exporting a trained network as the drone's policy file, and loading models for research tools.
+
+The export is the `companion.model_file` format: `NAME.pt` (TorchScript, metadata embedded) and
+`NAME.json` (its SHA-256). The TorchScript graph is traced in eval mode from a CPU copy in
+channels_last layout, with the input standardization folded into conv1
+(`learning.inference_graph`), and frozen (`torch.jit.freeze`, which also folds each batch norm
+that follows a conv into it). Input uint8 (B, 64, 384), output float32 (B, 3), body FLU velocity
+in m/s; it loads with `torch.jit.load` alone. The drone's loader (`companion.policy.Policy.load`)
+turns on torch's oneDNN Graph fuser first, which compiles the graph into fused partitions at its
+first calls; the metadata's `runtime` section says so for other loaders.
+
+`torch.jit.optimize_for_inference` is not baked into the file: in torch 2.13 it rewrites convs
+into MKL-DNN constants that `torch.jit.load` cannot read back ("required keyword attribute 'value'
+is undefined"), and it measured slower than the oneDNN Graph fuser (docs/BENCHMARKS.md).
+
+Grad-CAM needs the eager network, which a frozen graph no longer is, so the export also writes
+`NAME.weights.pt` (state dict + model config, read with `weights_only=True`); its SHA-256 is in
+the policy's metadata, so it is verified through the policy file's own hash.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from companion.camera.layout import camera_spec
+from companion.errors import ModelError
+from companion.frames import BODY_FRAME, WORLD_FRAME
+from companion.model_file import base_metadata, load_model, save_model
+from sim_harness.learning.checkpoint import load_checkpoint, model_from_checkpoint
+from sim_harness.learning.evaluate import PolicyModule
+from sim_harness.learning.inference_graph import InferenceDroNet
+from sim_harness.learning.model import (
+    DroNet,
+    build_model,
+    count_parameters,
+    example_input,
+    to_channels_last,
+)
+
+WEIGHTS_SUFFIX = ".weights.pt"
+EXPORT_TOLERANCE_MPS = 1e-4  # an export whose graph differs more than this from eager is refused
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    """Where the policy went, its hash, and the largest |exported - eager| seen at export."""
+
+    path: Path
+    sha256: str
+    weights_path: Path
+    max_abs_diff_mps: float
+    metadata: dict[str, Any]
+
+
+def to_torchscript(model: DroNet, graph: str = "inference") -> torch.jit.ScriptModule:
+    """Traced and frozen CPU copy of `model` in eval mode, channels_last.
+
+    `graph="inference"` (the export) traces `InferenceDroNet`, the same function with the input
+    standardization folded into conv1; `graph="eager"` traces `DroNet` itself (for the tests).
+    """
+    if graph not in ("inference", "eager"):
+        raise ValueError(f"graph must be 'inference' or 'eager', not {graph!r}")
+    cpu = to_channels_last(copy.deepcopy(model)).eval()
+    module: torch.nn.Module = InferenceDroNet(cpu).eval() if graph == "inference" else cpu
+    with torch.no_grad(), warnings.catch_warnings():
+        # TorchScript is the drone's format by design; torch 2.13 flags it as deprecated.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        traced = torch.jit.trace(module, example_input(1))  # type: ignore[no-untyped-call]
+        frozen: torch.jit.ScriptModule = torch.jit.freeze(traced)
+    return frozen
+
+
+def weights_path_for(policy_path: Path) -> Path:
+    """`NAME.pt` -> `NAME.weights.pt`."""
+    return policy_path.with_name(policy_path.stem + WEIGHTS_SUFFIX)
+
+
+def model_config(model: DroNet) -> dict[str, float]:
+    """What `build_model` needs to rebuild `model`."""
+    return {
+        "pixel_mean": float(model.standardize.pixel_mean),
+        "pixel_std": float(model.standardize.pixel_std),
+        "dropout": float(model.dropout.p),
+    }
+
+
+def policy_metadata(
+    model: DroNet,
+    manifest: dict[str, Any],
+    test_metrics: dict[str, Any] | None,
+    training: dict[str, Any],
+) -> dict[str, Any]:
+    """`companion.model_file.base_metadata()` plus what this network and its data were.
+
+    Raises `ModelError` if the dataset was recorded with a different camera rig.
+    """
+    rig = camera_spec()
+    if "camera" in manifest and json.loads(json.dumps(manifest["camera"])) != rig:
+        raise ModelError("the dataset's camera spec differs from companion.camera.layout's rig")
+    metadata = base_metadata()
+    metadata.update(
+        {
+            "camera": rig,
+            "frames": {
+                "output": f"body {BODY_FRAME}: x forward, y left, z up",
+                "world": WORLD_FRAME,
+                "target": "teacher's Reynolds command rotated from world into the body frame",
+                "dataset": manifest.get("frames"),
+            },
+            "dataset": {
+                "id": manifest["id"],
+                "counts": manifest.get("counts"),
+                "code_version": manifest.get("code_version"),
+            },
+            "pixel_mean": float(model.standardize.pixel_mean),
+            "pixel_std": float(model.standardize.pixel_std),
+            "test_metrics": test_metrics,
+            "training": training,
+            "architecture": {
+                "name": "DroNet ResNet-8, single 3-output regression head",
+                "parameters": count_parameters(model),
+                "gradcam_layer": "block2.conv_strided (64 x 4 x 24)",
+            },
+            "runtime": {
+                "graph": "frozen, channels_last, standardization folded into conv1",
+                "onednn_fusion": "recommended: torch.jit.enable_onednn_fusion(True) before the "
+                "first call; the graph compiles into fused partitions during its first 2 calls",
+                "threads": 1,
+            },
+            "torch_version": torch.__version__,
+        }
+    )
+    return metadata
+
+
+def export_policy(
+    model: DroNet,
+    path: Path,
+    manifest: dict[str, Any],
+    test_metrics: dict[str, Any] | None,
+    training: dict[str, Any],
+    scripted: torch.jit.ScriptModule | None = None,
+    check_images_u8: torch.Tensor | None = None,
+) -> ExportResult:
+    """Write `path` (+ sidecar) and its eager weights; returns the hash and the export check.
+
+    `scripted` is `to_torchscript(model)` when the caller already built it (e.g. to evaluate
+    it); `check_images_u8` (B, 64, 384) are the images compared between eager and exported
+    (default: 16 seeded random images). Raises `ModelError` if they differ by more than
+    `EXPORT_TOLERANCE_MPS`.
+    """
+    path = Path(path)
+    scripted = scripted if scripted is not None else to_torchscript(model)
+    if check_images_u8 is None:
+        generator = torch.Generator().manual_seed(0)
+        check_images_u8 = torch.randint(
+            0, 256, tuple(example_input(16).shape), dtype=torch.uint8, generator=generator
+        )
+    cpu = to_channels_last(copy.deepcopy(model)).eval()
+    with torch.inference_mode():
+        diff = float((scripted(check_images_u8) - cpu(check_images_u8)).abs().max())
+    if not diff <= EXPORT_TOLERANCE_MPS:
+        raise ModelError(f"exported graph differs from the eager model by {diff:g} m/s: refused")
+    weights = weights_path_for(path)
+    weights.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"model_config": model_config(cpu), "model": cpu.state_dict()}, weights)
+    metadata = policy_metadata(cpu, manifest, test_metrics, training)
+    metadata["eager_weights"] = {
+        "file": weights.name,
+        "sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),
+    }
+    metadata["export_check"] = {"images": int(check_images_u8.shape[0]), "max_abs_diff_mps": diff}
+    digest = save_model(scripted, metadata, path)
+    return ExportResult(path, digest, weights, diff, metadata)
+
+
+def is_checkpoint(path: Path) -> bool:
+    """A training run directory or a `.ckpt` file (anything else is a policy file)."""
+    return path.is_dir() or path.suffix == ".ckpt"
+
+
+def load_eager_model(
+    path: Path, device: str | torch.device = "cpu"
+) -> tuple[DroNet, dict[str, Any]]:
+    """The eager network (eval mode) from a checkpoint / run directory or a policy file.
+
+    For a policy file, the policy's hash is verified (`load_model`), then its weights file's hash
+    against the one recorded in the policy's metadata. Returns (model, checkpoint or metadata).
+    """
+    path = Path(path)
+    if is_checkpoint(path):
+        state = load_checkpoint(path, map_location=device)
+        return model_from_checkpoint(state, device), state
+    loaded = load_model(path)
+    record = loaded.metadata.get("eager_weights")
+    if not isinstance(record, dict):
+        raise ModelError(f"{path} records no eager weights (needed for Grad-CAM)")
+    weights = path.with_name(str(record["file"]))
+    try:
+        data = weights.read_bytes()
+    except OSError as exc:
+        raise ModelError(f"cannot read {weights}: {exc.strerror}") from exc
+    if hashlib.sha256(data).hexdigest() != record["sha256"]:
+        raise ModelError(f"{weights} does not match the hash recorded in {path.name}: refused")
+    state = torch.load(weights, map_location=device, weights_only=True)
+    cfg = state["model_config"]
+    model = build_model(cfg["pixel_mean"], cfg["pixel_std"], cfg["dropout"], device=device)
+    model.load_state_dict(state["model"])
+    return model.eval(), loaded.metadata
+
+
+def load_for_inference(
+    path: Path, device: str | torch.device = "cpu"
+) -> tuple[PolicyModule, dict[str, Any]]:
+    """A callable policy: the verified TorchScript module of a policy file (what the drone runs),
+    or the eager network of a checkpoint. Returns (module, metadata or checkpoint)."""
+    path = Path(path)
+    if is_checkpoint(path):
+        return load_eager_model(path, device)
+    loaded = load_model(path, map_location=str(device))
+    return loaded.module, loaded.metadata

@@ -1,0 +1,366 @@
+"""Training the policy network with the paper's recipe.
+
+Loss: mean squared error over the batch and the three body axes, (m/s)^2 (the data term of the
+paper's eq. 1, averaged over the axes as Keras' `mse`; its `(lambda / 2) ||w||^2` term is SGD's
+weight decay `lambda` on the conv and linear weights only). SGD with momentum 0.9, lr 5e-3 halved
+once the validation loss has not improved for 10 consecutive epochs, batch 128, dropout 0.5;
+training stops once the validation loss has not improved for more than 10 consecutive epochs (or
+at `max_epochs`). Inputs are standardized inside the model with the training split's pixel mean
+and standard deviation from the dataset manifest.
+
+One safeguard the paper does not state: the gradient's global norm is clipped at
+`grad_clip_norm` (10 by default; None turns it off). It was needed before the model got its final
+batch norm and zero-initialized head (see `sim_harness.learning.model`); it is kept against rare
+start-up spikes, and `metrics.jsonl` records the fraction of clipped steps per epoch.
+
+A run directory holds `last.ckpt` (written every epoch, for `resume`), `best.ckpt` (lowest
+validation loss), `metrics.jsonl` (one JSON object per epoch), `learning_curve.png` and
+`config.json`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from sim_harness.learning.batches import (
+    SplitArrays,
+    concat_splits,
+    load_batch,
+    prefetch,
+    shuffled_batches,
+    subset,
+)
+from sim_harness.learning.checkpoint import (
+    BEST_NAME,
+    LAST_NAME,
+    CheckpointError,
+    load_checkpoint,
+    load_optimizer_state,
+    optimizer_state,
+    restore_rng_state,
+    rng_state,
+    save_checkpoint,
+)
+from sim_harness.learning.evaluate import predict
+from sim_harness.learning.model import DroNet, build_model, parameter_groups
+from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
+
+__all__ = ["TrainConfig", "TrainResult", "resolve_device", "train", "train_on"]
+
+log = logging.getLogger(__name__)
+
+CURVE_EVERY_EPOCHS = 5  # learning_curve.png is redrawn this often, and when training ends
+
+
+def velocity_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean squared error over the batch and the three axes, (m/s)^2."""
+    return (pred - target).square().mean()
+
+
+def validation_loss(
+    model: DroNet, split: SplitArrays, batch_size: int, device: torch.device
+) -> float:
+    """`velocity_loss` over a whole split, model in eval mode."""
+    pred = predict(model, split.images, batch_size, device)
+    return float(np.mean((pred - split.targets) ** 2, dtype=np.float64))
+
+
+def _train_epoch(
+    model: DroNet,
+    optimizer: torch.optim.Optimizer,
+    split: SplitArrays,
+    batches: list[np.ndarray],
+    device: torch.device,
+    grad_clip_norm: float | None,
+    progress: bool,
+    desc: str,
+) -> tuple[float, float, float]:
+    """One pass over `batches`; returns (mean training loss, samples/s, fraction clipped)."""
+    model.train()
+    pin = device.type == "cuda"
+    total = torch.zeros((), dtype=torch.float64, device=device)
+    clipped = torch.zeros((), dtype=torch.int64, device=device)
+    seen = 0
+    start = time.perf_counter()
+    with tqdm(
+        total=sum(len(rows) for rows in batches),
+        desc=desc,
+        unit="img",
+        unit_scale=True,
+        leave=False,
+        disable=not progress,
+    ) as bar:
+        for step, (images, targets) in enumerate(
+            prefetch(load_batch(split, rows, pin) for rows in batches)
+        ):
+            images = images.to(device, non_blocking=True)
+            targets = targets.to(device, non_blocking=True)
+            loss = velocity_loss(model(images), targets)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()  # type: ignore[no-untyped-call]
+            if grad_clip_norm is not None:
+                norm = torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip_norm)
+                clipped += norm > grad_clip_norm
+            optimizer.step()
+            n = targets.shape[0]
+            total += loss.detach().double() * n
+            seen += n
+            bar.update(n)
+            if progress and step % 10 == 0:
+                bar.set_postfix(loss=f"{total.item() / seen:.4f}")
+    elapsed = time.perf_counter() - start
+    steps = max(len(batches), 1)
+    return total.item() / max(seen, 1), seen / max(elapsed, 1e-9), clipped.item() / steps
+
+
+def train(config: TrainConfig) -> TrainResult:
+    """Open `config.dataset` (a generated dataset) and train on its train / val splits."""
+    from sim_harness.dataset.store import open_dataset
+
+    dataset = open_dataset(config.dataset)
+    train_split: SplitArrays = dataset.split("train")
+    if config.extra_train:
+        extras = [open_dataset(root) for root in config.extra_train]
+        train_split = concat_splits([train_split, *(extra.split("train") for extra in extras)])
+        log.info(
+            "training on %s plus %s: %d samples",
+            config.dataset,
+            ", ".join(str(r) for r in config.extra_train),
+            train_split.n_samples,
+        )
+    return train_on(config, dataset.manifest, train_split, dataset.split("val"))
+
+
+def make_optimizer(model: DroNet, config: TrainConfig) -> torch.optim.SGD:
+    """SGD with momentum; weight decay on the conv and linear weights only."""
+    return torch.optim.SGD(
+        parameter_groups(model, config.weight_decay),
+        lr=config.lr,
+        momentum=config.momentum,
+    )
+
+
+def make_scheduler(
+    optimizer: torch.optim.Optimizer, config: TrainConfig
+) -> torch.optim.lr_scheduler.ReduceLROnPlateau:
+    """lr x `lr_factor` on the `lr_patience_epochs`-th consecutive epoch without improvement."""
+    return torch.optim.lr_scheduler.ReduceLROnPlateau(
+        optimizer,
+        mode="min",
+        factor=config.lr_factor,
+        patience=config.lr_patience_epochs - 1,  # torch acts on the (patience + 1)-th bad epoch
+        threshold=0.0,
+    )
+
+
+@dataclass
+class Plateau:
+    """Early-stopping bookkeeping; `stop` once more than `patience_epochs` epochs in a row have
+    not lowered the validation loss (an equal loss is no improvement)."""
+
+    patience_epochs: int
+    best_val_loss: float = math.inf
+    best_epoch: int = 0
+    epochs_since_best: int = 0
+
+    def update(self, epoch: int, val_loss: float) -> bool:
+        """Record one epoch's validation loss; True when it is a new best."""
+        improved = val_loss < self.best_val_loss
+        if improved:
+            self.best_val_loss, self.best_epoch, self.epochs_since_best = val_loss, epoch, 0
+        else:
+            self.epochs_since_best += 1
+        return improved
+
+    @property
+    def stop(self) -> bool:
+        return self.epochs_since_best > self.patience_epochs
+
+    def as_state(self) -> dict[str, Any]:
+        return {
+            "best_val_loss": self.best_val_loss,
+            "best_epoch": self.best_epoch,
+            "epochs_since_best": self.epochs_since_best,
+        }
+
+
+def train_on(
+    config: TrainConfig,
+    manifest: dict[str, Any],
+    train_split: SplitArrays,
+    val_split: SplitArrays,
+) -> TrainResult:
+    """Train on given splits; `manifest` supplies "id", "pixel_mean" and "pixel_std"."""
+    device = resolve_device(config.device)
+    if config.threads is not None:
+        torch.set_num_threads(config.threads)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+    ram_max = int(config.ram_max_gib * 2**30)
+    train_data = subset(train_split, config.limit_train, config.seed, ram_max)
+    val_data = subset(val_split, config.limit_val, config.seed + 1, ram_max)
+    out = config.out_dir
+    out.mkdir(parents=True, exist_ok=True)
+
+    torch.manual_seed(config.seed)
+    model = build_model(manifest["pixel_mean"], manifest["pixel_std"], config.dropout, device)
+    optimizer = make_optimizer(model, config)
+    scheduler = make_scheduler(optimizer, config)
+    plateau = Plateau(config.early_stop_patience_epochs)
+    state: dict[str, Any] = {
+        "epoch": 0,
+        "history": [],
+        "dataset": {"id": manifest["id"], "root": str(config.dataset)},
+        "command": config.command,
+        "wall_time_s": 0.0,
+        "train_samples": train_data.n_samples,
+        "model_config": {
+            "pixel_mean": float(manifest["pixel_mean"]),
+            "pixel_std": float(manifest["pixel_std"]),
+            "dropout": config.dropout,
+        },
+    }
+    if config.resume:
+        state = _resume(out / LAST_NAME, manifest, model, optimizer, scheduler, device)
+        plateau.best_val_loss = state["best_val_loss"]
+        plateau.best_epoch = state["best_epoch"]
+        plateau.epochs_since_best = state["epochs_since_best"]
+    else:
+        if config.init_from is not None:
+            _init_weights(model, config.init_from, state)
+        state["initial_val_loss"] = validation_loss(model, val_data, config.eval_batch_size, device)
+    info = {"config": config.as_dict(), "dataset_id": manifest["id"], "from_epoch": state["epoch"]}
+    (out / "config.json").write_text(json.dumps(info, indent=2) + "\n")
+    history: list[dict[str, Any]] = state["history"]
+    run_start = time.perf_counter() - state["wall_time_s"]
+    epoch = state["epoch"]
+    while not plateau.stop and epoch < config.max_epochs:
+        epoch += 1
+        epoch_start = time.perf_counter()
+        batches = shuffled_batches(train_data.n_samples, config.batch_size, config.seed, epoch)
+        train_loss, samples_per_s, clipped = _train_epoch(
+            model,
+            optimizer,
+            train_data,
+            batches,
+            device,
+            config.grad_clip_norm,
+            config.progress,
+            f"epoch {epoch}/{config.max_epochs}",
+        )
+        val_loss = validation_loss(model, val_data, config.eval_batch_size, device)
+        lr = optimizer.param_groups[0]["lr"]
+        scheduler.step(val_loss)
+        improved = plateau.update(epoch, val_loss)
+        history.append(
+            {
+                "epoch": epoch,
+                "train_loss": train_loss,
+                "val_loss": val_loss,
+                "val_rmse_mps": float(np.sqrt(val_loss)),
+                "lr": lr,
+                "train_samples_per_s": samples_per_s,
+                "clipped_fraction": clipped,
+                "epoch_wall_s": time.perf_counter() - epoch_start,
+                "improved": improved,
+            }
+        )
+        state.update(
+            plateau.as_state(),
+            epoch=epoch,
+            model=model.state_dict(),
+            optimizer=optimizer_state(optimizer, model),
+            scheduler=scheduler.state_dict(),
+            rng=rng_state(),
+            config=config.as_dict(),
+            wall_time_s=time.perf_counter() - run_start,
+        )
+        save_checkpoint(state, out / LAST_NAME)
+        if improved:
+            save_checkpoint(state, out / BEST_NAME)
+        _write_metrics(history, out / "metrics.jsonl")
+        if epoch % CURVE_EVERY_EPOCHS == 0:
+            _write_learning_curve(history, state["initial_val_loss"], out)
+        log.info(
+            "epoch %d: train %.4f, val %.4f (best %.4f at %d), lr %.2g, %.0f samples/s",
+            epoch,
+            train_loss,
+            val_loss,
+            plateau.best_val_loss,
+            plateau.best_epoch,
+            lr,
+            samples_per_s,
+        )
+    if history:
+        _write_learning_curve(history, state["initial_val_loss"], out)
+    return TrainResult(
+        out_dir=out,
+        epochs_run=epoch,
+        best_epoch=plateau.best_epoch,
+        best_val_loss=plateau.best_val_loss,
+        initial_val_loss=state["initial_val_loss"],
+        stopped_early=plateau.stop,
+        wall_time_s=time.perf_counter() - run_start,
+        history=history,
+    )
+
+
+def _resume(
+    path: Path,
+    manifest: dict[str, Any],
+    model: DroNet,
+    optimizer: torch.optim.Optimizer,
+    scheduler: torch.optim.lr_scheduler.ReduceLROnPlateau,
+    device: torch.device,
+) -> dict[str, Any]:
+    """Load `path` into model, optimizer, scheduler and RNG; return the checkpoint's state."""
+    if not path.exists():
+        raise CheckpointError(f"cannot resume: {path} does not exist")
+    state = load_checkpoint(path, map_location=device)
+    if state["dataset"]["id"] != manifest["id"]:
+        raise CheckpointError(
+            f"cannot resume: {path} was trained on dataset {state['dataset']['id']}, "
+            f"not {manifest['id']}"
+        )
+    model.load_state_dict(state["model"])
+    load_optimizer_state(optimizer, model, state["optimizer"])
+    scheduler.load_state_dict(state["scheduler"])
+    restore_rng_state(state["rng"])
+    log.info("resumed %s after epoch %d", path, state["epoch"])
+    return state
+
+
+def _init_weights(model: DroNet, source: Path, state: dict[str, Any]) -> None:
+    """Load `source`'s weights (checkpoint or policy file) into `model` for fine-tuning.
+
+    The standardization comes along with the weights (they were trained with it); the run's
+    `model_config` records it.
+    """
+    from sim_harness.learning.export import load_eager_model
+
+    init, _ = load_eager_model(Path(source), device=next(model.parameters()).device)
+    model.load_state_dict(init.state_dict())
+    state["model_config"]["pixel_mean"] = float(init.standardize.pixel_mean)
+    state["model_config"]["pixel_std"] = float(init.standardize.pixel_std)
+    state["init_from"] = str(source)
+    log.info("initialized from %s", source)
+
+
+def _write_metrics(history: list[dict[str, Any]], path: Path) -> None:
+    path.write_text("".join(json.dumps(row) + "\n" for row in history))
+
+
+def _write_learning_curve(history: list[dict[str, Any]], initial: float, out: Path) -> None:
+    from sim_harness.learning.plots import save_learning_curve
+
+    save_learning_curve(history, initial, out / "learning_curve.png")

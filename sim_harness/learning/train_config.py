@@ -1,0 +1,106 @@
+"""Configuration and result of a training run, and the device choice (see `learning.train`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from companion.errors import ConfigError
+from companion.validation import require_int_range, require_positive, require_range
+
+DEVICES = ("auto", "cpu", "cuda")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run. Defaults are the paper's hyper-parameters."""
+
+    dataset: Path
+    out_dir: Path
+    max_epochs: int = 200
+    batch_size: int = 128
+    lr: float = 5e-3
+    momentum: float = 0.9
+    weight_decay: float = 5e-4
+    dropout: float = 0.5
+    grad_clip_norm: float | None = 10.0  # not in the paper: see the module docstring
+    lr_factor: float = 0.5
+    lr_patience_epochs: int = 10  # lr x lr_factor after this many epochs without improvement
+    early_stop_patience_epochs: int = 10  # stop after MORE than this many without improvement
+    seed: int = 0
+    device: str = "auto"
+    limit_train: int | None = None  # quick runs: a fixed random subset of the training split
+    limit_val: int | None = None
+    eval_batch_size: int = 512
+    ram_max_gib: float = 4.0  # a split (or subset) up to this size is copied into RAM
+    threads: int | None = None  # torch CPU threads (None: torch's default)
+    progress: bool = True
+    resume: bool = False
+    command: str = ""  # the command line that started the run, recorded in checkpoints
+    # aggregated datasets (`swarm-sim dataset aggregate`) whose training splits join `dataset`'s;
+    # validation stays on `dataset`'s own split, so runs stay comparable
+    extra_train: tuple[Path, ...] = ()
+    init_from: Path | None = None  # start from these weights (checkpoint or policy file)
+
+    def __post_init__(self) -> None:
+        require_int_range("max_epochs", self.max_epochs, 1)
+        require_int_range("batch_size", self.batch_size, 1)
+        require_positive("lr", self.lr)
+        require_range("momentum", self.momentum, 0.0, 1.0, high_inclusive=False)
+        require_range("weight_decay", self.weight_decay, 0.0, 1.0)
+        require_range("dropout", self.dropout, 0.0, 1.0, high_inclusive=False)
+        if self.grad_clip_norm is not None:
+            require_positive("grad_clip_norm", self.grad_clip_norm)
+        require_range("lr_factor", self.lr_factor, 0.0, 1.0, low_inclusive=False)
+        require_int_range("lr_patience_epochs", self.lr_patience_epochs, 1)
+        require_int_range("early_stop_patience_epochs", self.early_stop_patience_epochs, 0)
+        require_int_range("seed", self.seed, 0)
+        if self.device not in DEVICES:
+            raise ConfigError(f"device: {self.device!r} is not one of {', '.join(DEVICES)}")
+        for name in ("limit_train", "limit_val"):
+            value = getattr(self, name)
+            if value is not None:
+                require_int_range(name, value, 1)
+        require_int_range("eval_batch_size", self.eval_batch_size, 1)
+        require_range("ram_max_gib", self.ram_max_gib, 0.0, None)
+        if self.threads is not None:
+            require_int_range("threads", self.threads, 1, 1024)
+        if self.init_from is not None and self.resume:
+            raise ConfigError("init_from: a resumed run continues from its own checkpoint")
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain data (paths as strings) for JSON and checkpoints."""
+
+        def plain(v: Any) -> Any:
+            if isinstance(v, Path):
+                return str(v)
+            return [plain(x) for x in v] if isinstance(v, tuple) else v
+
+        return {k: plain(v) for k, v in dataclasses.asdict(self).items()}
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """What a finished (or stopped) run achieved; `history` is one dict per epoch."""
+
+    out_dir: Path
+    epochs_run: int
+    best_epoch: int
+    best_val_loss: float
+    initial_val_loss: float
+    stopped_early: bool
+    wall_time_s: float
+    history: list[dict[str, Any]] = field(repr=False)
+
+
+def resolve_device(name: str) -> torch.device:
+    """ "auto" -> CUDA when available, else CPU; "cuda" without a GPU is a `ConfigError`."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device: 'cuda' was requested but torch sees no CUDA device")
+    return torch.device(name)

@@ -1,0 +1,220 @@
+"""The exported policy: equal to the eager network, self-describing, loads with torch alone,
+refused when its bytes do not match the recorded hash."""
+
+import asyncio
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from companion.camera.layout import camera_spec
+from companion.errors import ModelError
+from companion.model_file import enable_graph_fusion, load_model, sidecar_path
+from companion.policy import Policy, PolicyConfig
+from sim_harness.cli import main
+from sim_harness.dataset.store import open_dataset
+from sim_harness.learning.export import export_policy, load_eager_model, weights_path_for
+from sim_harness.learning.model import DroNet, build_model, count_parameters
+from sim_harness.learning.train import TrainConfig, train
+
+FRESH_INTERPRETER = r"""
+import importlib.abc, json, sys
+
+class NoProject(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("companion", "sim_harness"):
+            raise ImportError(f"{name} must not be needed to run the policy")
+        return None
+
+sys.meta_path.insert(0, NoProject())
+import torch
+
+extra = {"metadata.json": ""}
+module = torch.jit.load(sys.argv[1], _extra_files=extra)
+images = torch.zeros(2, 64, 384, dtype=torch.uint8)
+images[1] = torch.arange(384, dtype=torch.uint8)  # a gradient, row after row
+with torch.inference_mode():
+    out = module(images)
+print(json.dumps({
+    "dtype": str(out.dtype),
+    "shape": list(out.shape),
+    "out": out.tolist(),
+    "output_frame": json.loads(extra["metadata.json"])["output"]["frame"],
+    "project_loaded": sorted(
+        m for m in sys.modules if m.split(".")[0] in ("companion", "sim_harness")
+    ),
+}))
+"""
+
+
+def trained_looking(images_u8: torch.Tensor, seed: int = 0) -> DroNet:
+    """An untrained network made to look trained: batch-norm statistics estimated on real
+    images, affine parameters away from the identity (so freezing folds something), and a head
+    giving speeds of about 1 m/s."""
+    torch.manual_seed(seed)
+    model = build_model(pixel_mean=185.0, pixel_std=36.0)
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for module in model.modules():
+            if isinstance(module, torch.nn.BatchNorm2d):
+                n = module.num_features
+                module.weight.copy_(torch.rand(n, generator=generator) + 0.5)
+                module.bias.copy_(torch.randn(n, generator=generator) * 0.1)
+                module.reset_running_stats()
+                module.momentum = None  # a plain average over the batches below
+        model.train()
+        for batch in images_u8.split(32):
+            model(batch)
+        model.head.weight.copy_(torch.randn(3, 3072, generator=generator) * 0.01)
+        model.head.bias.copy_(torch.tensor([0.1, -0.2, 0.05]))
+    return model.eval()
+
+
+@pytest.fixture(scope="module")
+def exported(smoke_dataset, tmp_path_factory):
+    dataset = open_dataset(smoke_dataset)
+    model = trained_looking(torch.from_numpy(np.array(dataset.split("train").images[:96])))
+    path = tmp_path_factory.mktemp("export") / "policy.pt"
+    metrics = {"split": "test", "metrics": {"overall": {"r2": 0.5}}}
+    training = {"command": "swarm-sim train --dataset smoke", "epochs_run": 7}
+    result = export_policy(model, path, dataset.manifest, metrics, training)
+    return model, result, dataset
+
+
+def test_exported_equals_eager_within_1e5(exported) -> None:
+    model, result, dataset = exported
+    module = load_model(result.path).module
+    test = dataset.split("test")
+    real = torch.from_numpy(np.array(test.images[:9]))
+    noise = torch.randint(
+        0, 256, (9, 64, 384), dtype=torch.uint8, generator=torch.Generator().manual_seed(1)
+    )
+    with torch.inference_mode():
+        for images in (real, noise, real[:1]):
+            eager, frozen = model(images), module(images)
+            assert frozen.shape == (images.shape[0], 3) and frozen.dtype == torch.float32
+            assert 0.3 < eager.abs().max() < 10.0  # speeds a drone flies
+            assert (frozen - eager).abs().max().item() <= 1e-5
+    assert result.max_abs_diff_mps <= 1e-5
+
+
+@pytest.mark.parametrize("fusion", [True, False])
+def test_the_drone_loader_runs_the_export_fused_and_equal_to_eager(exported, fusion) -> None:
+    model, result, dataset = exported
+    fusion_before = torch.jit.onednn_fusion_enabled()
+    images = np.array(dataset.split("test").images[:9])
+    try:
+        with Policy.load(PolicyConfig(model_path=result.path, graph_fusion=fusion)) as policy:
+            assert policy.fused is fusion  # this x86 torch build has the oneDNN Graph fuser
+            one = asyncio.run(policy.infer(images[0]))
+            batch = policy.infer_batch(images)
+    finally:
+        enable_graph_fusion(fusion_before)
+    with torch.inference_mode():
+        eager = model(torch.from_numpy(images)).numpy()
+    assert one.ok
+    np.testing.assert_allclose(one.vel_body_flu, eager[0], atol=1e-5, rtol=0)
+    np.testing.assert_allclose(batch, eager, atol=1e-5, rtol=0)  # another batch size re-plans
+
+
+def test_loads_and_runs_in_a_fresh_interpreter_with_torch_only(exported, tmp_path) -> None:
+    model, result, _ = exported
+    done = subprocess.run(
+        [sys.executable, "-c", FRESH_INTERPRETER, str(result.path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report["project_loaded"] == []
+    assert report["dtype"] == "torch.float32" and report["shape"] == [2, 3]
+    assert report["output_frame"] == "body_flu"
+    images = torch.zeros(2, 64, 384, dtype=torch.uint8)
+    images[1] = torch.arange(384, dtype=torch.uint8)
+    with torch.inference_mode():
+        expected = model(images).numpy()
+    np.testing.assert_allclose(np.array(report["out"]), expected, atol=1e-5, rtol=0)
+
+
+def test_metadata_travels_with_the_file(exported) -> None:
+    model, result, dataset = exported
+    metadata = load_model(result.path).metadata
+    assert metadata == json.loads(sidecar_path(result.path).read_text())["metadata"]
+    assert metadata["input"]["dtype"] == "uint8" and metadata["input"]["shape"] == [-1, 64, 384]
+    assert metadata["input"]["standardization"] == "inside"
+    assert metadata["output"] == {"frame": "body_flu", "units": "m/s", "shape": [-1, 3]}
+    assert metadata["camera"] == camera_spec()
+    assert metadata["frames"]["world"] == "ENU" and "FLU" in metadata["frames"]["output"]
+    assert metadata["dataset"]["id"] == dataset.id
+    assert metadata["pixel_mean"] == 185.0 and metadata["pixel_std"] == 36.0
+    assert metadata["test_metrics"]["metrics"]["overall"]["r2"] == 0.5
+    assert metadata["training"]["command"] == "swarm-sim train --dataset smoke"
+    assert metadata["architecture"]["parameters"] == count_parameters(model)
+    assert metadata["torch_version"] == torch.__version__
+    assert "enable_onednn_fusion" in metadata["runtime"]["onednn_fusion"]
+    assert metadata["eager_weights"]["file"] == weights_path_for(result.path).name
+
+
+def test_a_file_that_does_not_match_its_hash_is_refused(exported, tmp_path) -> None:
+    _, result, _ = exported
+    for suffix in (".pt", ".json", ".weights.pt"):
+        source = result.path.with_name(result.path.stem + suffix)
+        (tmp_path / f"policy{suffix}").write_bytes(source.read_bytes())
+    tampered = tmp_path / "policy.pt"
+    data = bytearray(tampered.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    tampered.write_bytes(bytes(data))
+    with pytest.raises(ModelError, match="refused"):
+        load_model(tampered)
+    with pytest.raises(ModelError, match="refused"):
+        load_eager_model(tampered)
+    assert main(["evaluate", "--model", str(tampered), "--dataset", "unused"]) == 2
+
+
+def test_tampered_eager_weights_are_refused(exported, tmp_path) -> None:
+    _, result, _ = exported
+    for suffix in (".pt", ".json", ".weights.pt"):
+        source = result.path.with_name(result.path.stem + suffix)
+        (tmp_path / f"policy{suffix}").write_bytes(source.read_bytes())
+    weights = tmp_path / "policy.weights.pt"
+    data = bytearray(weights.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    weights.write_bytes(bytes(data))
+    load_model(tmp_path / "policy.pt")  # the policy itself is intact
+    with pytest.raises(ModelError, match="weights.pt does not match"):
+        load_eager_model(tmp_path / "policy.pt")
+
+
+def test_eager_weights_rebuild_the_network(exported) -> None:
+    model, result, _ = exported
+    rebuilt, metadata = load_eager_model(result.path)
+    assert metadata["dataset"]["id"] == result.metadata["dataset"]["id"]
+    images = torch.randint(0, 256, (3, 64, 384), dtype=torch.uint8)
+    with torch.inference_mode():
+        assert torch.equal(rebuilt(images), model(images))
+
+
+def test_swarm_sim_export_from_a_training_run(smoke_dataset, tmp_path, capsys) -> None:
+    run = tmp_path / "run"
+    config = TrainConfig(
+        dataset=smoke_dataset, out_dir=run, max_epochs=1, limit_train=16, progress=False
+    )
+    train(config)
+    out = tmp_path / "models" / "p.pt"
+    evaluation = tmp_path / "eval"
+    args = ["export", "--checkpoint", str(run), "--dataset", str(smoke_dataset)]
+    assert main([*args, "--out", str(out), "--eval-out", str(evaluation)]) == 0
+    assert "test n = 180" in capsys.readouterr().out
+    metadata = load_model(out).metadata
+    report = json.loads((evaluation / "metrics.json").read_text())
+    assert metadata["test_metrics"]["metrics"] == report["metrics"]
+    assert metadata["test_metrics"]["split"] == "test"
+    assert metadata["training"]["epochs_run"] == 1
+    assert metadata["export_check"]["max_abs_diff_mps"] <= 1e-5
+    assert weights_path_for(out).exists()

@@ -1,0 +1,245 @@
+"""Training on the smoke dataset: it learns, checkpoints, resumes exactly and stops on time."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from companion.errors import ConfigError
+from sim_harness.dataset.store import open_dataset
+from sim_harness.learning.batches import InMemorySplit, prefetch, shuffled_batches, subset
+from sim_harness.learning.checkpoint import (
+    BEST_NAME,
+    LAST_NAME,
+    CheckpointError,
+    load_checkpoint,
+    load_optimizer_state,
+    optimizer_state,
+)
+from sim_harness.learning.model import build_model
+from sim_harness.learning.train import (
+    Plateau,
+    TrainConfig,
+    make_optimizer,
+    make_scheduler,
+    train,
+    train_on,
+    velocity_loss,
+)
+
+
+def quick(dataset, out, **overrides) -> TrainConfig:
+    """A few small batches per epoch: seconds, not hours."""
+    settings = {
+        "batch_size": 32,
+        "limit_train": 64,
+        "limit_val": 32,
+        "progress": False,
+        **overrides,
+    }
+    return TrainConfig(dataset=dataset, out_dir=out, **settings)
+
+
+@pytest.mark.slow
+def test_a_short_training_lowers_the_validation_loss(smoke_dataset, tmp_path) -> None:
+    # The whole smoke split, at a learning rate suited to 12 steps per epoch; the untrained
+    # network (zero head) predicts 0 m/s, so beating it means learning from the images.
+    config = TrainConfig(
+        dataset=smoke_dataset,
+        out_dir=tmp_path / "run",
+        max_epochs=3,
+        batch_size=32,
+        lr=1e-3,
+        progress=False,
+    )
+    result = train(config)
+    assert result.epochs_run == 3
+    assert result.best_val_loss < result.initial_val_loss
+    assert result.history[-1]["train_loss"] < result.history[0]["train_loss"]
+    lines = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
+    rows = [json.loads(line) for line in lines]
+    assert [row["epoch"] for row in rows] == [1, 2, 3]
+    for key in ("train_loss", "val_loss", "lr", "train_samples_per_s", "clipped_fraction"):
+        assert all(np.isfinite(row[key]) for row in rows), key
+    for name in (LAST_NAME, BEST_NAME, "learning_curve.png", "config.json"):
+        assert (tmp_path / "run" / name).stat().st_size > 0, name
+    best = load_checkpoint(tmp_path / "run")  # a run folder means its best checkpoint
+    assert best["epoch"] == result.best_epoch and best["best_val_loss"] == result.best_val_loss
+    assert best["dataset"]["id"] == open_dataset(smoke_dataset).id
+
+
+def test_the_optimizer_decays_weights_only(smoke_dataset, tmp_path) -> None:
+    train(quick(smoke_dataset, tmp_path, max_epochs=1, limit_train=32))
+    state = load_checkpoint(tmp_path / LAST_NAME)
+    model = build_model(state["model_config"]["pixel_mean"], state["model_config"]["pixel_std"])
+    groups = state["optimizer"]["param_groups"]
+    assert [g["weight_decay"] for g in groups] == [5e-4, 0.0]
+    assert all(g["momentum"] == 0.9 and g["lr"] == 5e-3 for g in groups)
+    # the saved groups list parameter indices in the order `parameter_groups` gave them
+    weights = [n for n, p in model.named_parameters() if p.ndim > 1]
+    others = [n for n, p in model.named_parameters() if p.ndim == 1]
+    assert len(groups[0]["params"]) == len(weights) == 11
+    assert len(groups[1]["params"]) == len(others)
+    assert all(n.endswith((".bias", "bn1.weight", "bn2.weight", "bn_out.weight")) for n in others)
+    optimizer = make_optimizer(model, quick(smoke_dataset, tmp_path))
+    decayed = {id(p) for p in optimizer.param_groups[0]["params"]}
+    assert {n for n, p in model.named_parameters() if id(p) in decayed} == set(weights)
+
+
+def assert_same_state(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+@pytest.mark.slow
+def test_resume_continues_from_the_checkpoint_epoch_and_state(smoke_dataset, tmp_path) -> None:
+    straight = train(quick(smoke_dataset, tmp_path / "straight", max_epochs=2))
+    train(quick(smoke_dataset, tmp_path / "split", max_epochs=1))
+    first = load_checkpoint(tmp_path / "split" / LAST_NAME)
+    assert first["epoch"] == 1
+    resumed = train(quick(smoke_dataset, tmp_path / "split", max_epochs=2, resume=True))
+    assert [row["epoch"] for row in resumed.history] == [1, 2]
+    assert resumed.history[0] == first["history"][0]  # epoch 1 was not run again
+    a = load_checkpoint(tmp_path / "straight" / LAST_NAME)
+    b = load_checkpoint(tmp_path / "split" / LAST_NAME)
+    assert a["epoch"] == b["epoch"] == 2
+    assert_same_state(a["model"], b["model"])  # same batches, dropout masks and momentum
+    assert a["scheduler"] == b["scheduler"]
+    for pa, pb in zip(
+        a["optimizer"]["state"].values(), b["optimizer"]["state"].values(), strict=True
+    ):
+        assert torch.equal(pa["momentum_buffer"], pb["momentum_buffer"])
+    assert resumed.initial_val_loss == straight.initial_val_loss
+    assert [r["val_loss"] for r in resumed.history] == [r["val_loss"] for r in straight.history]
+    metrics = (tmp_path / "split" / "metrics.jsonl").read_text().splitlines()
+    assert [json.loads(line)["epoch"] for line in metrics] == [1, 2]
+
+
+def test_resume_refuses_another_dataset_or_a_missing_checkpoint(smoke_dataset, tmp_path) -> None:
+    with pytest.raises(CheckpointError, match="does not exist"):
+        train(quick(smoke_dataset, tmp_path / "none", resume=True))
+    train(quick(smoke_dataset, tmp_path / "run", max_epochs=1, limit_train=32))
+    split = open_dataset(smoke_dataset).split("train")
+    manifest = {"id": "another-dataset", "pixel_mean": 180.0, "pixel_std": 35.0}
+    config = quick(smoke_dataset, tmp_path / "run", max_epochs=2, resume=True)
+    with pytest.raises(CheckpointError, match="another-dataset"):
+        train_on(config, manifest, split, split)
+
+
+def test_lr_halves_on_the_tenth_bad_epoch_and_training_stops_after_more_than_ten() -> None:
+    config = TrainConfig(dataset=None, out_dir=None)  # type: ignore[arg-type]
+    model = build_model(128.0, 64.0)
+    optimizer = make_optimizer(model, config)
+    scheduler = make_scheduler(optimizer, config)
+    plateau = Plateau(config.early_stop_patience_epochs)
+    losses = [1.0, 0.5] + [0.5] * 11  # a tie is no improvement
+    lrs, stops = [], []
+    for epoch, loss in enumerate(losses, start=1):
+        scheduler.step(loss)
+        plateau.update(epoch, loss)
+        lrs.append(optimizer.param_groups[0]["lr"])
+        stops.append(plateau.stop)
+    assert lrs[:11] == [5e-3] * 11  # epochs 3..11: nine bad epochs, lr unchanged
+    assert lrs[11] == 2.5e-3  # epoch 12: the tenth bad epoch in a row
+    assert stops == [False] * 12 + [True]  # epoch 13: more than ten bad epochs
+    assert plateau.best_epoch == 2 and plateau.best_val_loss == 0.5
+
+
+def test_loss_is_the_mean_squared_error() -> None:
+    pred = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]])
+    target = torch.tensor([[1.0, 0.0, 3.0], [0.0, 0.0, 1.0]])
+    assert velocity_loss(pred, target).item() == pytest.approx((4.0 + 1.0) / 6.0)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "field"),
+    [
+        ({"batch_size": 0}, "batch_size"),
+        ({"lr": -1.0}, "lr"),
+        ({"device": "tpu"}, "device"),
+        ({"momentum": 1.0}, "momentum"),
+        ({"limit_train": 0}, "limit_train"),
+        ({"grad_clip_norm": 0.0}, "grad_clip_norm"),
+    ],
+)
+def test_bad_settings_name_the_field(tmp_path, overrides, field) -> None:
+    with pytest.raises(ConfigError, match=field):
+        TrainConfig(dataset=tmp_path, out_dir=tmp_path, **overrides)
+
+
+def test_batches_cover_every_sample_once_sorted_and_seeded() -> None:
+    batches = shuffled_batches(70, 32, seed=3, epoch=2)
+    assert [len(b) for b in batches] == [32, 32, 6]
+    assert all(np.all(np.diff(b) > 0) for b in batches)
+    assert sorted(np.concatenate(batches).tolist()) == list(range(70))
+    again = shuffled_batches(70, 32, seed=3, epoch=2)
+    assert all(np.array_equal(a, b) for a, b in zip(batches, again, strict=True))
+    other = shuffled_batches(70, 32, seed=3, epoch=3)
+    assert not all(np.array_equal(a, b) for a, b in zip(batches, other, strict=True))
+
+
+def test_a_limited_split_is_a_fixed_subset_in_ram(smoke_dataset) -> None:
+    split = open_dataset(smoke_dataset).split("train")
+    part = subset(split, 50, seed=0, ram_max_bytes=2**30)
+    assert isinstance(part, InMemorySplit) and part.n_samples == 50
+    again = subset(split, 50, seed=0, ram_max_bytes=2**30)
+    assert np.array_equal(part.targets, again.targets)
+    rows = np.sort(np.random.default_rng(0).permutation(split.n_samples)[:50])
+    assert np.array_equal(part.images, split.images[rows])
+    assert np.array_equal(part.meta["nearest_m"], split.meta["nearest_m"][rows])
+    assert subset(split, None, seed=0, ram_max_bytes=0) is split  # too big: stays memory-mapped
+
+
+def test_prefetch_keeps_order_and_raises_the_producers_error() -> None:
+    assert list(prefetch(iter(range(50)), depth=2)) == list(range(50))
+
+    def failing():
+        yield 1
+        raise OSError("disk gone")
+
+    with pytest.raises(OSError, match="disk gone"):
+        list(prefetch(failing()))
+
+
+class _TwoParams(torch.nn.Module):
+    """Same parameter names, registration order chosen by the caller."""
+
+    def __init__(self, order: tuple[str, str]) -> None:
+        super().__init__()
+        shapes = {"head": (3,), "norm": (8,)}
+        for name in order:
+            self.register_parameter(name, torch.nn.Parameter(torch.zeros(shapes[name])))
+
+
+def _stepped_sgd(model: torch.nn.Module) -> torch.optim.SGD:
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.1, momentum=0.9)
+    for param in model.parameters():
+        param.grad = torch.arange(param.numel(), dtype=torch.float32) + param.numel()
+    optimizer.step()
+    return optimizer
+
+
+def test_resume_maps_optimizer_state_by_parameter_name_not_position() -> None:
+    before = _TwoParams(("head", "norm"))
+    saved = optimizer_state(_stepped_sgd(before), before)
+    after = _TwoParams(("norm", "head"))  # a refactor reordered the attributes
+    optimizer = torch.optim.SGD(after.parameters(), lr=0.1, momentum=0.9)
+
+    load_optimizer_state(optimizer, after, saved)
+
+    for name, param in after.named_parameters():
+        buffer = optimizer.state[param]["momentum_buffer"]
+        assert buffer.shape == param.shape, name
+        assert torch.equal(buffer, torch.arange(param.numel(), dtype=torch.float32) + param.numel())
+
+
+def test_resume_refuses_optimizer_state_that_does_not_fit_naming_the_parameter() -> None:
+    before = _TwoParams(("head", "norm"))
+    saved = optimizer_state(_stepped_sgd(before), before)
+    del saved["param_names"]  # positions only, as torch stores it
+    after = _TwoParams(("norm", "head"))
+    optimizer = torch.optim.SGD(after.parameters(), lr=0.1, momentum=0.9)
+    with pytest.raises(CheckpointError, match="momentum_buffer for norm has shape"):
+        load_optimizer_state(optimizer, after, saved)
