@@ -6,6 +6,7 @@
     swarm-sim view --scenario common --seed 0 --step 20 --agent 0   # what one drone sees
     swarm-sim dataset generate --preset quick          # the paper's dataset (resumable)
     swarm-sim dataset inspect data/quick-s0
+    swarm-sim hil --agents 3 --compare                # the real daemons fly the swarm
 
 Errors are printed as one line on stderr with exit status 2.
 """
@@ -19,6 +20,7 @@ from collections.abc import Sequence
 from companion.errors import CompanionError
 from sim_harness.dataset.cli import add_dataset_commands
 from sim_harness.experiments.cli import add_aggregate_command, add_experiment_commands
+from sim_harness.hil.cli import add_hil_commands
 from sim_harness.learning.cli import add_learning_commands
 from sim_harness.sim.cli import add_sim_commands
 
@@ -30,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_experiment_commands(sub)
     add_aggregate_command(add_dataset_commands(sub))
     add_learning_commands(sub)
+    add_hil_commands(sub)
     return parser
 
 

@@ -124,6 +124,7 @@ class AutopilotEmulator:
         self._setpoints: deque[SetpointRecord] = deque(maxlen=config.log_capacity)
         self._commands: deque[CommandRecord] = deque(maxlen=config.log_capacity)
         self._link_alive = True
+        self._ignored_while_down = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._sock: socket.socket | None = None
@@ -222,12 +223,18 @@ class AutopilotEmulator:
         with self._lock:
             return list(self._logic.mode_log)
 
+    @property
+    def ignored_while_down(self) -> int:
+        """Datagrams received and dropped while the link was cut (`set_link_alive(False)`)."""
+        with self._lock:
+            return self._ignored_while_down
+
     # -- test hooks --------------------------------------------------------------------------
 
     def pilot_switch_mode(self, mode: Px4Mode) -> MavResult:
         """The RC pilot flips the mode switch (OFFBOARD still needs fresh setpoints)."""
         with self._lock:
-            return self._logic.set_mode(self._now(), mode, "pilot switch")
+            return self._logic.set_mode(self.now_s(), mode, "pilot switch")
 
     def set_link_alive(self, alive: bool) -> None:
         """False: stop sending and ignore everything received, as if the radio link were cut."""
@@ -236,7 +243,8 @@ class AutopilotEmulator:
 
     # -- the thread --------------------------------------------------------------------------
 
-    def _now(self) -> float:
+    def now_s(self) -> float:
+        """The emulator's clock (s): the time base of its setpoint, command and mode logs."""
         return time.monotonic() - self._t0_s
 
     def _run(self) -> None:
@@ -249,16 +257,16 @@ class AutopilotEmulator:
             "telemetry": 1.0 / cfg.telemetry_rate_hz,
             "status": 1.0 / cfg.status_rate_hz,
         }
-        now = self._now()
+        now = self.now_s()
         due = dict.fromkeys(periods, now)
         last_physics = now
         try:
             while not self._stop.is_set():
-                wait_s = min(_MAX_WAIT_S, max(0.0, min(due.values()) - self._now()))
+                wait_s = min(_MAX_WAIT_S, max(0.0, min(due.values()) - self.now_s()))
                 readable, _, _ = select.select([sock], [], [], wait_s)
                 if readable:
                     self._receive(sock)
-                now = self._now()
+                now = self.now_s()
                 for name, period in periods.items():
                     if now < due[name]:
                         continue
@@ -283,6 +291,8 @@ class AutopilotEmulator:
                 continue
             with self._lock:
                 alive = self._link_alive
+                if not alive:
+                    self._ignored_while_down += 1
             if not alive:
                 continue
             try:
@@ -349,7 +359,7 @@ class AutopilotEmulator:
 
     def _handle(self, msg: mavlink.MAVLink_message) -> None:
         kind = msg.get_type()
-        now = self._now()
+        now = self.now_s()
         if kind == "SET_POSITION_TARGET_LOCAL_NED" and self._addressed_to_us(msg):
             with self._lock:
                 record, command = msgs.decode_setpoint(now, msg, self._state.yaw_ned_rad)

@@ -85,6 +85,7 @@ class _Camera:
     next_status_s: float = 0.0
     pending: bytearray = field(default_factory=bytearray)
     corrupt_left: int = 0
+    pushed: tuple[float, float, NDArray[np.uint8]] | None = None  # (send at, captured at, tile)
     fps_frames: int = 0
     fps_since_s: float = 0.0
     stats: CameraStats = field(default_factory=CameraStats)
@@ -93,8 +94,9 @@ class _Camera:
 class CameraEmulator:
     """Six cameras (FACE_NAMES) on ptys with symlinks `<directory>/<prefix><face>`.
 
-    `source`: a `TileSource` (called once per frame tick for all six cameras), or a recorded array
-    (N, 64, 384) uint8 of stitched frames played in a loop, one per tick. `clock`: monotonic
+    `source`: a `TileSource` (called once per frame tick for all six cameras), a recorded array
+    (N, 64, 384) uint8 of stitched frames played in a loop, one per tick, or None: frames are
+    pushed (`push`) by a simulator that renders them at capture time. `clock`: monotonic
     seconds, used for the schedule and the cameras' capture timestamps.
     """
 
@@ -102,7 +104,7 @@ class CameraEmulator:
         self,
         directory: str | os.PathLike[str],
         *,
-        source: TileSource | NDArray[np.uint8] = bar_pattern,
+        source: TileSource | NDArray[np.uint8] | None = bar_pattern,
         rate_hz: float = 10.0,
         hello_period_s: float = 2.0,
         status_period_s: float = 1.0,
@@ -114,7 +116,7 @@ class CameraEmulator:
         if not rate_hz > 0 or not hello_period_s > 0 or not status_period_s > 0:
             raise SimError("camera emulator: rate_hz and periods must be > 0")
         self._directory = Path(directory)
-        self._source = as_tile_source(source)
+        self._source = None if source is None else as_tile_source(source)
         self._period_s = 1.0 / rate_hz
         self._hello_period_s = hello_period_s
         self._status_period_s = status_period_s
@@ -141,7 +143,8 @@ class CameraEmulator:
         """Create the six ptys and symlinks and start streaming in a daemon thread."""
         if self._thread is not None:
             raise SimError("camera emulator: already started")
-        self._tiles(0.0, 0)  # a source of the wrong shape fails here, not in the thread
+        if self._source is not None:
+            self._tiles(0.0, 0)  # a source of the wrong shape fails here, not in the thread
         self._directory.mkdir(parents=True, exist_ok=True)
         now_s = self._clock()
         self._start_s = self._next_frame_s = now_s
@@ -234,6 +237,22 @@ class CameraEmulator:
         with self._lock:
             self._camera(face).corrupt_left += count
 
+    def push(
+        self, tiles: NDArray[np.uint8], captured_s: float, send_at_s: NDArray[np.float64]
+    ) -> None:
+        """Pushed mode: six tiles (6, 64, 64) captured at `captured_s`; face k's FRAME goes out
+        at `send_at_s[k]` (clock seconds), stamped with its capture time. A frame still waiting
+        when the next one arrives is replaced and counted as dropped, as a camera's own
+        double buffer would."""
+        if tiles.shape != (N_FACES, FACE_SIZE_PX, FACE_SIZE_PX) or tiles.dtype != np.uint8:
+            raise SimError(f"camera emulator: pushed {tiles.dtype} {tiles.shape}, expected uint8 "
+                           f"({N_FACES}, {FACE_SIZE_PX}, {FACE_SIZE_PX})")  # fmt: skip
+        with self._lock:
+            for index, cam in enumerate(self._cameras.values()):
+                if cam.pushed is not None:
+                    cam.stats.frames_dropped += 1
+                cam.pushed = (float(send_at_s[index]), captured_s, tiles[index])
+
     def _camera(self, face: str) -> _Camera:
         try:
             return self._cameras[face]
@@ -272,12 +291,15 @@ class CameraEmulator:
                 with self._lock:
                     for cam in self._cameras.values():
                         self._service(cam, now_s)
-                    if now_s >= self._next_frame_s:
+                    if self._source is None:
+                        next_s = self._send_pushed(now_s)
+                    elif now_s >= self._next_frame_s:
                         self._send_frames(now_s)
                     busy = any(cam.pending for cam in self._cameras.values())
                     for cam in self._cameras.values():
                         self._flush(cam)
-                    wait_s = min(self._next_frame_s - self._clock(), 0.002 if busy else POLL_S)
+                    due_s = next_s if self._source is None else self._next_frame_s
+                    wait_s = min(due_s - self._clock(), 0.002 if busy else POLL_S)
                 self._stop.wait(max(wait_s, 0.0005))
         except Exception:
             logger.exception("camera emulator thread failed")
@@ -346,19 +368,35 @@ class CameraEmulator:
         tiles = self._tiles(now_s - self._start_s, self._tick)
         self._tick += 1
         for index, cam in enumerate(self._cameras.values()):
-            if cam.master_fd is None or not cam.announced or cam.stats.stalled:
+            self._send_frame(cam, tiles[index], now_s)
+
+    def _send_pushed(self, now_s: float) -> float:
+        """Send every pushed frame that is due; the clock time of the next one (or a poll)."""
+        next_s = now_s + POLL_S
+        for cam in self._cameras.values():
+            if cam.pushed is None:
                 continue
-            frame = bytearray(encode_frame(tiles[index], camera_id=cam.header_id,
-                                           seq=self._next_seq(cam),
-                                           timestamp_us=self._camera_us(cam, now_s)))  # fmt: skip
-            if cam.corrupt_left > 0:
-                cam.corrupt_left -= 1
-                frame[(HEADER_SIZE + len(frame)) // 2] ^= 0x5A  # mid-payload
-            if self._queue(cam, bytes(frame)):
-                cam.stats.frames_sent += 1
-                cam.fps_frames += 1
+            send_at_s, captured_s, tile = cam.pushed
+            if now_s >= send_at_s:
+                cam.pushed = None
+                self._send_frame(cam, tile, captured_s)
             else:
-                cam.stats.frames_dropped += 1
+                next_s = min(next_s, send_at_s)
+        return next_s
+
+    def _send_frame(self, cam: _Camera, tile: NDArray[np.uint8], captured_s: float) -> None:
+        if cam.master_fd is None or not cam.announced or cam.stats.stalled:
+            return
+        frame = bytearray(encode_frame(tile, camera_id=cam.header_id, seq=self._next_seq(cam),
+                                       timestamp_us=self._camera_us(cam, captured_s)))  # fmt: skip
+        if cam.corrupt_left > 0:
+            cam.corrupt_left -= 1
+            frame[(HEADER_SIZE + len(frame)) // 2] ^= 0x5A  # mid-payload
+        if self._queue(cam, bytes(frame)):
+            cam.stats.frames_sent += 1
+            cam.fps_frames += 1
+        else:
+            cam.stats.frames_dropped += 1
 
     def _tiles(self, t_s: float, tick: int) -> NDArray[np.uint8]:
         tiles = self._source(t_s, tick)
@@ -374,9 +412,9 @@ class CameraEmulator:
         return seq
 
     @staticmethod
-    def _camera_us(cam: _Camera, now_s: float) -> int:
-        """The camera's capture clock: µs since it booted (was plugged)."""
-        return max(0, int((now_s - cam.boot_s) * 1e6))
+    def _camera_us(cam: _Camera, t_s: float) -> int:
+        """The camera's capture clock at clock time `t_s`: µs since it booted (was plugged)."""
+        return max(0, int((t_s - cam.boot_s) * 1e6))
 
     @classmethod
     def _queue(cls, cam: _Camera, message: bytes) -> bool:

@@ -1,0 +1,221 @@
+"""One emulated drone of the HIL swarm: six pty cameras, a PX4 emulator on the shared world's
+vehicle, and the unmodified `companion run --config FILE` daemon, started as systemd starts it.
+
+The daemon's configuration is the shipped example (`systemd/companion.toml`, what an operator
+copies to the drone) with only what differs per drone replaced: its id, the camera devices and
+ids, the model, the autopilot link, the log folder, the telemetry endpoint and the migration
+point. The migration point is given in the drone's own local frame (ENU from its EKF origin,
+which PX4 sets on the ground where the drone was switched on): the operator computes it per drone
+from the goal and that drone's take-off point, exactly as done here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sim_harness.errors import SimError
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.camera_emulator import CameraEmulator
+from sim_harness.hil.px4_messages import Home
+from sim_harness.hil.world_vehicle import WorldVehicle
+from sim_harness.learning.shipped import PROJECT_ROOT
+
+SHIPPED_CONFIG = PROJECT_ROOT / "systemd" / "companion.toml"
+LOOPBACK_TCP = "tcp/127.0.0.1"
+
+
+def toml_text(doc: dict[str, Any], prefix: str = "") -> str:
+    """A TOML document of tables, strings, numbers, booleans and lists (what configs hold)."""
+    scalars, tables = [], []
+    for key, value in doc.items():
+        if isinstance(value, dict):
+            tables.append((key, value))
+        else:
+            scalars.append(f"{key} = {json.dumps(value)}")
+    text = (f"[{prefix}]\n" if prefix and scalars else "") + "".join(s + "\n" for s in scalars)
+    for key, value in tables:
+        text += "\n" + toml_text(value, f"{prefix}.{key}" if prefix else key)
+    return text
+
+
+def free_tcp_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def companion_command() -> list[str]:
+    """`companion` as installed next to this interpreter (the unit's ExecStart), else `-m`."""
+    exe = shutil.which("companion", path=str(Path(sys.executable).parent))
+    return [exe] if exe else [sys.executable, "-m", "companion.cli"]
+
+
+@dataclass(frozen=True)
+class DroneSetup:
+    """Per-drone facts the harness chooses: index, home and where its files go."""
+
+    index: int
+    home_world_enu: NDArray[np.float64]
+    migration_point_local_enu: NDArray[np.float64] | None
+    folder: Path
+
+    @property
+    def drone_id(self) -> str:
+        return f"drone{self.index + 1}"
+
+    @property
+    def system_id(self) -> int:
+        return self.index + 1
+
+
+class HilDrone:
+    """Cameras, autopilot emulator and daemon of one drone. `start()`, then `stop()`."""
+
+    def __init__(
+        self,
+        setup: DroneSetup,
+        vehicle: WorldVehicle,
+        home: Home,
+        model_path: Path,
+        daemon_overrides: dict[str, dict[str, Any]] | None = None,
+    ) -> None:
+        self.setup = setup
+        self.vehicle = vehicle
+        setup.folder.mkdir(parents=True, exist_ok=True)
+        self.cameras = CameraEmulator(setup.folder / "dev", source=None)
+        altitude_m = float(vehicle.state().altitude_m)
+        self.px4 = AutopilotEmulator(
+            EmulatorConfig.hovering(
+                free_udp_port(),
+                altitude_m,
+                system_id=setup.system_id,
+                home=home,
+                start_yaw_rad=float(vehicle.state().yaw_ned_rad),
+            ),
+            backend=vehicle,
+        )
+        self.model_path = model_path
+        self.overrides = daemon_overrides or {}
+        self.telemetry_endpoint = f"{LOOPBACK_TCP}:{free_tcp_port()}"
+        self.config_path = setup.folder / "companion.toml"
+        self.flights_dir = setup.folder / "flights"
+        self.process: subprocess.Popen[bytes] | None = None
+        self.exit_code: int | None = None
+        self.killed_by: str | None = None  # "sigterm" | "sigkill" when a fault plan stopped it
+
+    def config_document(self) -> dict[str, Any]:
+        """The shipped example config with this drone's wiring."""
+        doc: dict[str, Any] = tomllib.loads(SHIPPED_CONFIG.read_text())
+        doc["drone"] = {"id": self.setup.drone_id}
+        doc["cameras"]["faces"] = self.cameras.faces_config()
+        doc["policy"] = {**doc["policy"], "model_path": str(self.model_path.resolve())}
+        doc["policy"].pop("sha256", None)
+        control = doc.setdefault("control", {})
+        if self.setup.migration_point_local_enu is not None:
+            control["migration_point_enu"] = [
+                round(float(c), 6) for c in self.setup.migration_point_local_enu
+            ]
+        doc["autopilot"] = {
+            **doc["autopilot"],
+            "url": f"udpin://127.0.0.1:{self.px4.config.client_port}",
+            "discovery_timeout_s": 60.0,  # nine daemons start at once on two cores
+            "health_timeout_s": 60.0,
+        }
+        doc["recorder"] = {**doc["recorder"], "directory": str(self.flights_dir)}
+        doc["telemetry"] = {
+            **doc["telemetry"],
+            "listen_endpoints": [self.telemetry_endpoint],
+            "connect_endpoints": [],
+            "multicast_scouting": False,
+        }
+        doc["daemon"] = {**doc["daemon"], "engage": "auto"}
+        for section, values in self.overrides.items():
+            doc.setdefault(section, {}).update(values)
+        return doc
+
+    def start_emulators(self) -> None:
+        self.cameras.start()
+        self.px4.start()
+
+    def start_daemon(self) -> None:
+        """`companion run --config FILE` in its own process group, output to daemon.log."""
+        self.config_path.write_text(toml_text(self.config_document()))
+        env = {k: v for k, v in os.environ.items() if k != "NOTIFY_SOCKET"}
+        with (self.setup.folder / "daemon.log").open("wb") as log:
+            self.process = subprocess.Popen(
+                [*companion_command(), "run", "--config", str(self.config_path)],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+                env=env,
+            )
+
+    @property
+    def alive(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+    def signal_daemon(self, sig: signal.Signals) -> None:
+        """Send `sig` to the daemon's process group (as systemd's KillMode=mixed does first)."""
+        if self.process is None or self.process.poll() is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.process.pid, sig)
+
+    def wait_daemon(self, timeout_s: float) -> int | None:
+        """The exit code once the daemon ended within `timeout_s`, else None."""
+        if self.process is None:
+            return None
+        try:
+            self.exit_code = self.process.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            return None
+        return self.exit_code
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """SIGTERM, wait, SIGKILL what is left; then the emulators. Idempotent."""
+        if self.alive:
+            self.signal_daemon(signal.SIGTERM)
+            if self.wait_daemon(timeout_s) is None:
+                self.signal_daemon(signal.SIGKILL)
+                self.wait_daemon(5.0)
+        elif self.process is not None:
+            self.exit_code = self.process.poll()
+        self.px4.stop()
+        self.cameras.close()
+
+    def daemon_log_tail(self, lines: int = 5) -> str:
+        path = self.setup.folder / "daemon.log"
+        if not path.exists():
+            return ""
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+
+
+def wait_until(condition: Any, timeout_s: float, poll_s: float = 0.05) -> bool:
+    """Poll `condition()` until true or `timeout_s` passed; whether it became true."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(poll_s)
+    return bool(condition())
+
+
+__all__ = ["DroneSetup", "HilDrone", "SimError", "companion_command", "toml_text", "wait_until"]

@@ -1,0 +1,404 @@
+"""The HIL swarm: one pybullet world, N unmodified daemons, all on the wall clock.
+
+```
+world loop (this thread)                       per drone (threads + a child process)
+  physics 100 Hz: latest PX4 command per drone ─▶ WorldVehicle ◀─ PX4 emulator (MAVLink/UDP)
+  render drone i at its capture instants ───────▶ six pty cameras ─▶ companion run ─┘ (MAVSDK)
+  record 10 Hz; faults; lateness
+```
+
+The daemons run in real time, so the world must too: physics steps are due on a fixed grid and
+a step taken more than `late_physics_s` behind it is *late*; a capture rendered more than
+`late_capture_s` after its instant is *late*; a frame replaced before it was sent is *dropped*.
+`Lateness.valid` says whether the run stayed inside the stated thresholds; an invalid run is
+reported as such, never as a result.
+
+Cameras: each drone's six cameras capture together at 10 Hz with a per-drone phase (drones are
+switched on at different times); each camera's frame then leaves after its own fixed transfer
+delay plus jitter (free-running OpenMV boards: exposure, readout and USB polling differ), so the
+daemon sees the six tiles arrive spread over up to `camera_delay_s[1]`, stamped with the capture
+time on each camera's own clock and numbered by each camera's own sequence counter.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.camera.layout import split
+from sim_harness.hil.drone import DroneSetup, HilDrone
+from sim_harness.hil.faults import FaultPlan, FaultRunner
+from sim_harness.hil.px4_logic import Px4Mode
+from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, WorldPose, WorldVehicle, home_of
+from sim_harness.sim import metrics
+from sim_harness.sim.render import PyBulletRenderer, Renderer
+from sim_harness.sim.rollout import FlightLog, has_arrived
+from sim_harness.sim.scenarios import Scenario
+from sim_harness.sim.vehicle import VehicleModel, VehicleParams
+from sim_harness.sim.world import SimRates, World
+
+log = logging.getLogger(__name__)
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class HilConfig:
+    """How the harness runs a flight (the scenario and model come separately).
+
+    `engage_timeout_s`: how long every daemon gets to start, connect and engage OFFBOARD.
+    `camera_delay_s`: range of the per-camera transfer delay after capture (s).
+    Lateness thresholds: at most `max_late_fraction` of captures (and of physics steps) late.
+    """
+
+    rates: SimRates = field(default_factory=SimRates)
+    camera_rate_hz: float = 10.0
+    camera_delay_s: tuple[float, float] = (0.004, 0.030)
+    camera_jitter_s: float = 0.002
+    engage_timeout_s: float = 90.0
+    late_capture_s: float = 0.02
+    late_physics_s: float = 0.02
+    max_late_fraction: float = 0.01
+    daemon_overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
+    seed: int = 0  # camera phases and delays
+
+
+@dataclass
+class Lateness:
+    """The harness's own timing: is the world keeping up with the wall clock?"""
+
+    physics_steps: int = 0
+    physics_late: int = 0
+    physics_max_behind_s: float = 0.0
+    captures: int = 0
+    captures_late: int = 0
+    capture_max_late_s: float = 0.0
+    render_s: list[float] = field(default_factory=list)
+    frames_sent: int = 0
+    frames_dropped: int = 0
+    max_late_fraction: float = 0.01
+
+    @property
+    def physics_late_fraction(self) -> float:
+        return self.physics_late / max(self.physics_steps, 1)
+
+    @property
+    def captures_late_fraction(self) -> float:
+        return self.captures_late / max(self.captures, 1)
+
+    @property
+    def frames_dropped_fraction(self) -> float:
+        return self.frames_dropped / max(self.frames_sent + self.frames_dropped, 1)
+
+    @property
+    def valid(self) -> bool:
+        worst = max(
+            self.physics_late_fraction, self.captures_late_fraction, self.frames_dropped_fraction
+        )
+        return worst <= self.max_late_fraction
+
+    def summary(self) -> dict[str, Any]:
+        render = np.asarray(self.render_s) * 1e3 if self.render_s else np.zeros(1)
+        return {
+            "valid": self.valid,
+            "threshold_fraction": self.max_late_fraction,
+            "physics_steps": self.physics_steps,
+            "physics_late": self.physics_late,
+            "physics_late_fraction": round(self.physics_late_fraction, 5),
+            "physics_max_behind_ms": round(self.physics_max_behind_s * 1e3, 2),
+            "captures": self.captures,
+            "captures_late": self.captures_late,
+            "captures_late_fraction": round(self.captures_late_fraction, 5),
+            "capture_max_late_ms": round(self.capture_max_late_s * 1e3, 2),
+            "render_ms_p50": round(float(np.percentile(render, 50)), 3),
+            "render_ms_p99": round(float(np.percentile(render, 99)), 3),
+            "frames_sent": self.frames_sent,
+            "frames_dropped": self.frames_dropped,
+            "frames_dropped_fraction": round(self.frames_dropped_fraction, 5),
+        }
+
+
+@dataclass
+class HilRun:
+    """What a HIL flight produced: the flight log, the drones (for their logs) and timing."""
+
+    log: FlightLog
+    drones: list[HilDrone]
+    lateness: Lateness
+    engage_s: list[float | None]  # per drone: seconds from daemon start to OFFBOARD
+    flight_t0_px4: list[float]  # per drone: its PX4 emulator's clock at the flight's t = 0
+    faults: FaultRunner | None
+    aborted: str | None = None  # why the flight could not start
+
+
+class HilSwarm:
+    """Runs one scenario with N daemons; `run()` returns a `HilRun` (use it once)."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        model_path: Path,
+        out_dir: Path,
+        config: HilConfig | None = None,
+        faults: FaultPlan | None = None,
+        renderer: Renderer | None = None,
+        vehicle_params: VehicleParams | None = None,
+        progress: Callable[[str], None] | None = None,
+    ) -> None:
+        self.scenario = scenario
+        self.config = config or HilConfig()
+        self.out_dir = out_dir
+        self.renderer = renderer or PyBulletRenderer()
+        self.progress = progress or (lambda _msg: None)
+        n = scenario.n_agents
+        self.vehicle = VehicleModel(
+            vehicle_params or VehicleParams(),
+            scenario.initial_pos_world_enu,
+            scenario.initial_yaw_rad,
+        )
+        rng = np.random.default_rng(self.config.seed)
+        period = 1.0 / self.config.camera_rate_hz
+        self._phase_s = (np.arange(n) + rng.uniform(0, 1, n)) * period / n
+        lo, hi = self.config.camera_delay_s
+        self._delay_s = rng.uniform(lo, hi, (n, 6))
+        self._rng = rng
+        self.drones: list[HilDrone] = []
+        s = self.vehicle.state
+        for i in range(n):
+            home = np.array([s.pos_world_enu[i, 0], s.pos_world_enu[i, 1], 0.0])
+            goal = scenario.migration_points[i]
+            setup = DroneSetup(
+                index=i,
+                home_world_enu=home,
+                migration_point_local_enu=None if np.isnan(goal).any() else goal - home,
+                folder=out_dir / f"drone{i + 1}",
+            )
+            backend = WorldVehicle(home, self._pose(i))
+            self.drones.append(
+                HilDrone(
+                    setup,
+                    backend,
+                    home_of(DEFAULT_ORIGIN, home),
+                    model_path,
+                    self.config.daemon_overrides,
+                )
+            )
+        self.faults = FaultRunner(faults, self.drones) if faults is not None else None
+
+    def _pose(self, i: int) -> WorldPose:
+        s = self.vehicle.state
+        return WorldPose(
+            s.pos_world_enu[i].copy(), s.vel_world_enu[i].copy(), self.vehicle.q_world_body[i]
+        )
+
+    # -- the loop ------------------------------------------------------------------------
+
+    def run(self, duration_s: float) -> HilRun:
+        cfg = self.config
+        n = self.scenario.n_agents
+        lateness = Lateness(max_late_fraction=cfg.max_late_fraction)
+        rows: dict[str, list[FloatArray]] = {k: [] for k in ("pos", "vel", "q", "sp")}
+        contacts: list[tuple[int, int, int]] = []
+        engage_s: list[float | None] = [None] * n
+        stop_reason = "time_limit"
+        aborted = None
+        with World(n) as world:
+            try:
+                for drone in self.drones:
+                    drone.start_emulators()
+                for drone in self.drones:
+                    drone.start_daemon()
+                daemon_t0 = [d.px4.now_s() for d in self.drones]
+                clock = _Clock(self, world, lateness)
+                self.progress(f"started {n} daemons; waiting for OFFBOARD")
+
+                def engaged() -> bool:
+                    for i, drone in enumerate(self.drones):
+                        if engage_s[i] is None and drone.px4.mode is Px4Mode.OFFBOARD:
+                            first = next(
+                                m.t_s for m in drone.px4.mode_changes() if m.new is Px4Mode.OFFBOARD
+                            )
+                            engage_s[i] = first - daemon_t0[i]
+                    dead = [d for d in self.drones if not d.alive]
+                    if dead:
+                        raise _Abort(f"{dead[0].setup.drone_id} exited before engaging: "
+                                     f"{dead[0].daemon_log_tail(3)}")  # fmt: skip
+                    return all(e is not None for e in engage_s)
+
+                deadline = time.monotonic() + cfg.engage_timeout_s
+                while not engaged() and time.monotonic() < deadline:
+                    clock.advance_until(time.monotonic() + 0.05)
+                if not engaged():
+                    missing = [
+                        d.setup.drone_id
+                        for d, e in zip(self.drones, engage_s, strict=True)
+                        if e is None
+                    ]
+                    raise _Abort(f"not engaged after {cfg.engage_timeout_s:g} s: {missing}")
+                clock.reset_counters()
+                flight_start = time.monotonic()
+                flight_t0 = [d.px4.now_s() for d in self.drones]
+                self.progress(f"all engaged (last after {max(e or 0 for e in engage_s):.1f} s)")
+                steps = math.ceil(duration_s * cfg.rates.control_hz - 1e-9)
+                for step in range(steps + 1):
+                    due = flight_start + step * cfg.rates.control_dt_s
+                    touching = clock.advance_until(due)
+                    contacts.extend((step, i, j) for i, j in touching)
+                    s = self.vehicle.state
+                    rows["pos"].append(s.pos_world_enu.copy())
+                    rows["vel"].append(s.vel_world_enu.copy())
+                    rows["q"].append(self.vehicle.q_world_body.copy())
+                    rows["sp"].append(clock.setpoints.copy())
+                    if self.faults is not None:
+                        self.faults.poll(time.monotonic() - flight_start)
+                    if has_arrived(self.scenario, s.pos_world_enu):
+                        stop_reason = "arrived"
+                        break
+                    if step % max(1, int(cfg.rates.control_hz * 5)) == 0 and step:
+                        self.progress(f"t = {step * cfg.rates.control_dt_s:.0f} s")
+                if self.faults is not None:
+                    self.faults.finish(time.monotonic() - flight_start)
+            except _Abort as exc:
+                aborted = str(exc)
+                flight_start = time.monotonic()
+                flight_t0 = [d.px4.now_s() for d in self.drones]
+                log.error("hil: %s", aborted)
+            finally:
+                for drone in self.drones:
+                    drone.stop()
+            lateness.frames_sent = sum(
+                d.cameras.stats(f).frames_sent for d in self.drones for f in _faces()
+            )
+            lateness.frames_dropped = sum(
+                d.cameras.stats(f).frames_dropped for d in self.drones for f in _faces()
+            )
+        flight = _flight_log(self.scenario, cfg.rates, rows, contacts, stop_reason)
+        return HilRun(flight, self.drones, lateness, engage_s, flight_t0, self.faults, aborted)
+
+
+class _Abort(Exception):
+    """The flight cannot start or go on (a daemon died before engaging, a timeout)."""
+
+
+def _faces() -> tuple[str, ...]:
+    from companion.camera.layout import FACE_NAMES
+
+    return tuple(FACE_NAMES)
+
+
+class _Clock:
+    """Advances physics and camera captures to the wall clock, counting lateness."""
+
+    def __init__(self, swarm: HilSwarm, world: World, lateness: Lateness) -> None:
+        self.swarm, self.world, self.lateness = swarm, world, lateness
+        cfg = swarm.config
+        self.dt_s = cfg.rates.physics_dt_s
+        self.period_s = 1.0 / cfg.camera_rate_hz
+        now = time.monotonic()
+        self.next_physics = now
+        self.next_capture = now + swarm._phase_s
+        self.setpoints = np.zeros((swarm.scenario.n_agents, 3))
+
+    def reset_counters(self) -> None:
+        keep = self.lateness.max_late_fraction
+        self.lateness.__init__(max_late_fraction=keep)  # type: ignore[misc]
+
+    def advance(self) -> set[tuple[int, int]]:
+        """Do whatever is due now (physics steps, captures); contacts seen meanwhile."""
+        return self._run_due(time.monotonic())
+
+    def advance_until(self, until: float) -> set[tuple[int, int]]:
+        """Keep the world on the wall clock until monotonic time `until`."""
+        touching: set[tuple[int, int]] = set()
+        while True:
+            now = time.monotonic()
+            touching |= self._run_due(now)
+            if now >= until:
+                return touching
+            next_event = min(self.next_physics, float(self.next_capture.min()), until)
+            time.sleep(max(0.0, next_event - time.monotonic()))
+
+    def _run_due(self, now: float) -> set[tuple[int, int]]:
+        sw, lat = self.swarm, self.lateness
+        touching: set[tuple[int, int]] = set()
+        while self.next_physics <= now:
+            behind = now - self.next_physics
+            lat.physics_steps += 1
+            if behind > sw.config.late_physics_s:
+                lat.physics_late += 1
+            lat.physics_max_behind_s = max(lat.physics_max_behind_s, behind)
+            self.setpoints = np.stack([d.vehicle.velocity_setpoint_enu() for d in sw.drones])
+            sw.vehicle.step(self.setpoints, self.dt_s)
+            s = sw.vehicle.state
+            if self.world.may_touch(s.pos_world_enu):
+                touching.update(self.world.contacts(s.pos_world_enu, sw.vehicle.q_world_body))
+            for i, drone in enumerate(sw.drones):
+                drone.vehicle.publish(sw._pose(i))
+            self.next_physics += self.dt_s
+        due = np.flatnonzero(self.next_capture <= now)
+        for i in due:
+            self._capture(int(i), float(self.next_capture[i]))
+            self.next_capture[i] += self.period_s
+            while self.next_capture[i] <= time.monotonic() - self.period_s:
+                self.next_capture[i] += self.period_s  # a whole period missed: skip it
+                lat.captures += 1
+                lat.captures_late += 1
+        return touching
+
+    def _capture(self, i: int, instant: float) -> None:
+        sw, lat = self.swarm, self.lateness
+        started = time.monotonic()
+        late = started - instant
+        lat.captures += 1
+        if late > sw.config.late_capture_s:
+            lat.captures_late += 1
+        lat.capture_max_late_s = max(lat.capture_max_late_s, late)
+        s = sw.vehicle.state
+        image = sw.renderer.render(self.world, s.pos_world_enu, sw.vehicle.q_world_body, [i])[0]
+        done = time.monotonic()
+        lat.render_s.append(done - started)
+        jitter = sw._rng.uniform(0.0, sw.config.camera_jitter_s, 6)
+        sw.drones[i].cameras.push(split(image), done, done + sw._delay_s[i] + jitter)
+
+
+def _flight_log(
+    scenario: Scenario,
+    rates: SimRates,
+    rows: dict[str, list[FloatArray]],
+    contacts: list[tuple[int, int, int]],
+    stop_reason: str,
+) -> FlightLog:
+    n = scenario.n_agents
+    if not rows["pos"]:  # aborted before the flight: the spawn state only
+        rows = {
+            "pos": [scenario.initial_pos_world_enu.copy()],
+            "vel": [np.zeros((n, 3))],
+            "q": [np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))],
+            "sp": [np.zeros((n, 3))],
+        }
+    pos, vel = np.stack(rows["pos"]), np.stack(rows["vel"])
+    sp = np.stack(rows["sp"])
+    sp[-1] = np.nan
+    d_min, d_max = metrics.distance_extremes(pos)
+    return FlightLog(
+        scenario=scenario,
+        controller="hil",
+        rates=rates,
+        time_s=np.arange(pos.shape[0]) * rates.control_dt_s,
+        pos_world_enu=pos,
+        vel_world_enu=vel,
+        q_world_body=np.stack(rows["q"]),
+        setpoint_world_enu=sp,
+        d_min_m=d_min,
+        d_max_m=d_max,
+        order=metrics.order_parameter(vel),
+        contacts=contacts,
+        stop_reason=stop_reason,
+    )

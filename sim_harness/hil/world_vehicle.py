@@ -1,0 +1,90 @@
+"""One drone of the shared simulated world, seen by its PX4 emulator as its own vehicle.
+
+The emulator thread calls `step(dt_s, command)` at its own rate: the command is kept as the
+drone's latest (what PX4's velocity controller would track) and the state returned is the one
+the world loop last published. The world loop (`hil.swarm`) owns the physics: it reads every
+drone's latest command, steps all vehicles together and publishes each drone's state back.
+
+Frames: the world is ENU with its origin at the spawn centre's ground point; each drone's PX4
+has its home and EKF origin on the ground under its own spawn point (as a real drone has where
+it was switched on), so its local NED position is the world position minus that home, in NED.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from companion.frames import enu_to_ned, ned_to_enu, quat_enu_flu_to_ned_frd
+from sim_harness.hil.emulated_vehicle import VehicleStateNed, VelocityCommand
+from sim_harness.hil.px4_messages import Home
+
+FloatArray = NDArray[np.float64]
+
+DEFAULT_ORIGIN = Home(47.397742, 8.545594, 488.0)  # the world origin's geodetic position
+FALL_SPEED_MPS = 3.0  # descent with the motors off (disarmed in the air)
+
+
+def home_of(origin: Home, home_world_enu: FloatArray) -> Home:
+    """Geodetic position of a point `home_world_enu` (m, ENU) from the world origin."""
+    return Home(*origin.to_global(enu_to_ned(home_world_enu)))
+
+
+@dataclass(frozen=True)
+class WorldPose:
+    """A drone's state in the world: ENU position (3,), velocity (3,), q world <- body FLU."""
+
+    pos_world_enu: FloatArray
+    vel_world_enu: FloatArray
+    q_world_body: FloatArray
+
+
+class WorldVehicle:
+    """`VehicleBackend` of one drone in the shared world (thread-safe)."""
+
+    def __init__(self, home_world_enu: FloatArray, pose: WorldPose) -> None:
+        self.home_world_enu = np.asarray(home_world_enu, dtype=np.float64).copy()
+        self._lock = threading.Lock()
+        self._command: VelocityCommand | None = VelocityCommand(vel_ned_mps=np.zeros(3))
+        self._state = self._to_ned(pose)
+
+    def _to_ned(self, pose: WorldPose) -> VehicleStateNed:
+        return VehicleStateNed(
+            pos_ned_m=enu_to_ned(pose.pos_world_enu - self.home_world_enu),
+            vel_ned_mps=enu_to_ned(pose.vel_world_enu),
+            q_ned_frd_wxyz=quat_enu_flu_to_ned_frd(pose.q_world_body),
+        )
+
+    # -- the emulator's side -------------------------------------------------------------
+
+    def state(self) -> VehicleStateNed:
+        with self._lock:
+            return self._state
+
+    def step(self, dt_s: float, command: VelocityCommand | None) -> VehicleStateNed:
+        """Keep `command` as the drone's latest; the physics runs in the world loop."""
+        with self._lock:
+            self._command = command
+            return self._state
+
+    # -- the world loop's side -----------------------------------------------------------
+
+    def velocity_setpoint_enu(self) -> FloatArray:
+        """What the vehicle should fly now (world ENU, m/s): PX4's command, or a motor-off fall."""
+        with self._lock:
+            command = self._command
+        if command is None:
+            return np.array([0.0, 0.0, -FALL_SPEED_MPS])
+        vel = np.asarray(command.vel_ned_mps, dtype=np.float64)
+        if vel.shape != (3,) or not np.all(np.isfinite(vel)):
+            return np.zeros(3)
+        return ned_to_enu(vel)
+
+    def publish(self, pose: WorldPose) -> None:
+        """The world loop's latest state of this drone."""
+        state = self._to_ned(pose)
+        with self._lock:
+            self._state = state
