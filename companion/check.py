@@ -15,7 +15,7 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-from companion.errors import CompanionError
+from companion.errors import CompanionError, ConfigError, problems_of
 
 OK, WARN, FAIL = "ok", "warn", "FAIL"
 
@@ -55,12 +55,15 @@ def _directory(path: Path) -> tuple[str, str]:
 
 
 def run_checks(config_path: str | Path) -> list[CheckItem]:
-    """Every check's result; stops after the config check if the config is unusable."""
+    """Every check's result; stops after the config check if the config is unusable (then one
+    FAIL line per problem of the file, all of them)."""
     from companion.config import load_config  # torch is imported with the policy section
     from companion.model_file import load_model
 
     try:
         config = load_config(config_path)
+    except ConfigError as exc:  # every problem of the file, one line each
+        return [CheckItem("config", FAIL, problem) for problem in problems_of(exc)]
     except CompanionError as exc:
         return [CheckItem("config", FAIL, str(exc))]
     items = [CheckItem("config", OK, f"{config.source} (drone {config.drone.id})")]
@@ -135,7 +138,8 @@ def format_report(items: list[CheckItem]) -> str:
     failed = [item.name for item in items if item.verdict == FAIL]
     warned = [item.name for item in items if item.verdict == WARN]
     if failed:
-        lines.append(f"NOT READY: {len(failed)} problem(s): {', '.join(failed)}")
+        names = ", ".join(dict.fromkeys(failed))  # each name once, in report order
+        lines.append(f"NOT READY: {len(failed)} problem(s): {names}")
     else:
         lines.append("ready" + (f" ({len(warned)} warning(s))" if warned else ""))
     return "\n".join(lines)

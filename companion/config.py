@@ -13,7 +13,8 @@
 
 `[cameras]` and `[policy]` are required (faces and model path have no sensible default); every
 other section and key is optional and defaults to the paper's values. Unknown sections and keys
-are refused, naming them; every error names `section.field` and the allowed range.
+are refused, naming them; every error names `section.field` and the allowed range, and every
+problem of the file is reported at once (`ConfigErrors`), so it is fixed in one pass.
 
 Cross-section rules: `[drone].id` is the telemetry drone id (`[telemetry].drone_id`, if given,
 must agree); the daemon sends one setpoint per tick, so `[autopilot].setpoint_rate_hz`, if given,
@@ -24,15 +25,15 @@ from __future__ import annotations
 
 import re
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from companion.autopilot_types import AutopilotConfig
 from companion.camera.config import CameraRigConfig
 from companion.control import ControlConfig
-from companion.errors import ConfigError
+from companion.errors import ConfigError, problems_error, problems_of
 from companion.policy import PolicyConfig
 from companion.recorder import RecorderConfig
 from companion.sections import check_keys, require_bool, require_table, section_from_dict
@@ -44,6 +45,7 @@ REQUIRED_SECTIONS = ("cameras", "policy")
 ENGAGE_MODES = ("auto", "never")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -160,41 +162,70 @@ class CompanionConfig:
 def config_from_dict(data: Mapping[str, Any], base_dir: Path | None = None) -> CompanionConfig:
     """Build and validate the config from a parsed TOML document.
 
-    Relative paths (`policy.model_path`, `recorder.directory`) are taken from `base_dir`.
+    Relative paths (`policy.model_path`, `recorder.directory`) are taken from `base_dir`. Every
+    section is checked, and every problem found is raised at once (`ConfigErrors` when several).
     """
     document = require_table("config", data)
-    check_keys("config", document, SECTIONS)
+    problems: list[str] = []
+    try:
+        check_keys("config", document, SECTIONS)
+    except ConfigError as exc:
+        problems.append(str(exc))
     for name in REQUIRED_SECTIONS:
         if name not in document:
-            raise ConfigError(f"{name}: missing section [{name}] (required)")
+            problems.append(f"{name}: missing section [{name}] (required)")
 
-    def table(name: str) -> Mapping[str, Any]:
-        return require_table(name, document.get(name, {}))
+    def build(name: str, make: Callable[[Mapping[str, Any]], T]) -> T | None:
+        if name in REQUIRED_SECTIONS and name not in document:
+            return None
+        try:
+            return make(require_table(name, document.get(name, {})))
+        except ConfigError as exc:
+            problems.extend(problems_of(exc))
+            return None
 
-    drone = DroneConfig.from_dict(table("drone"))
-    daemon = DaemonConfig.from_dict(table("daemon"))
-    cameras = CameraRigConfig.from_dict(table("cameras"))
-    policy = PolicyConfig.from_dict(table("policy"), base_dir=base_dir)
-    control = ControlConfig.from_dict(table("control"))
-    recorder = RecorderConfig.from_dict(table("recorder"), base_dir=base_dir)
+    drone = build("drone", DroneConfig.from_dict)
+    daemon = build("daemon", DaemonConfig.from_dict)
+    cameras = build("cameras", CameraRigConfig.from_dict)
+    policy = build("policy", lambda t: PolicyConfig.from_dict(t, base_dir=base_dir))
+    control = build("control", ControlConfig.from_dict)
+    recorder = build("recorder", lambda t: RecorderConfig.from_dict(t, base_dir=base_dir))
 
-    autopilot_table = dict(table("autopilot"))
-    rate = autopilot_table.setdefault("setpoint_rate_hz", daemon.rate_hz)
-    if rate != daemon.rate_hz:
-        raise ConfigError(
-            f"autopilot.setpoint_rate_hz: {rate!r} differs from daemon.rate_hz "
-            f"({daemon.rate_hz:g}); the daemon sends one setpoint per tick: set only daemon.rate_hz"
-        )
-    autopilot = AutopilotConfig.from_dict(autopilot_table)
+    def autopilot_from(table: Mapping[str, Any]) -> AutopilotConfig:
+        table = dict(table)
+        if daemon is None:  # its rate is reported already; check the rest against the default
+            table.pop("setpoint_rate_hz", None)
+            return AutopilotConfig.from_dict(table)
+        rate = table.setdefault("setpoint_rate_hz", daemon.rate_hz)
+        if rate != daemon.rate_hz:
+            problems.append(
+                f"autopilot.setpoint_rate_hz: {rate!r} differs from daemon.rate_hz "
+                f"({daemon.rate_hz:g}); the daemon sends one setpoint per tick: set only "
+                "daemon.rate_hz"
+            )
+            table["setpoint_rate_hz"] = daemon.rate_hz
+        return AutopilotConfig.from_dict(table)
 
-    telemetry_table = dict(table("telemetry"))
-    given_id = telemetry_table.setdefault("drone_id", drone.id)
-    if given_id != drone.id:
-        raise ConfigError(
-            f"telemetry.drone_id: {given_id!r} differs from drone.id ({drone.id!r}); "
-            "set only drone.id"
-        )
-    telemetry = TelemetryConfig.from_dict(telemetry_table)
+    def telemetry_from(table: Mapping[str, Any]) -> TelemetryConfig:
+        table = dict(table)
+        if drone is None:  # its id is reported already
+            table.pop("drone_id", None)
+            return TelemetryConfig.from_dict(table)
+        given_id = table.setdefault("drone_id", drone.id)
+        if given_id != drone.id:
+            problems.append(
+                f"telemetry.drone_id: {given_id!r} differs from drone.id ({drone.id!r}); "
+                "set only drone.id"
+            )
+            table["drone_id"] = drone.id
+        return TelemetryConfig.from_dict(table)
+
+    autopilot = build("autopilot", autopilot_from)
+    telemetry = build("telemetry", telemetry_from)
+    if problems:
+        raise problems_error(problems)
+    assert drone and daemon and cameras and policy and control and recorder
+    assert autopilot and telemetry
     return CompanionConfig(
         drone=drone,
         cameras=cameras,
@@ -221,5 +252,5 @@ def load_config(path: str | Path) -> CompanionConfig:
     try:
         config = config_from_dict(document, base_dir=source.resolve().parent)
     except ConfigError as exc:
-        raise ConfigError(f"{source}: {exc}") from exc
+        raise problems_error(problems_of(exc), where=str(source)) from exc
     return replace(config, source=source)

@@ -36,6 +36,9 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from companion.errors import RecorderError
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first 8 bytes of every MCAP file (a crash-cut one included)
 TOPIC_FRAME = "/camera/stitched"
 TOPIC_POLICY = "/policy/output"
 TOPIC_SETPOINT = "/control/setpoint"
@@ -129,6 +132,21 @@ class LogMessage:
 _TRUNCATION_ERRORS = (McapError, struct.error, zstandard.ZstdError, ValueError, UnicodeDecodeError)
 
 
+def require_mcap(path: Path) -> None:
+    """Raise `RecorderError` unless `path` starts like an MCAP file.
+
+    A file cut short anywhere passes: an empty one or one holding part of the magic is a writer
+    killed before its first flush (an empty, incomplete log), not another kind of file.
+    """
+    with open(path, "rb") as stream:
+        head = stream.read(len(MCAP_MAGIC))
+    if head != MCAP_MAGIC[: len(head)]:
+        raise RecorderError(
+            f"{path}: not an MCAP file (starts with {head!r}; a flight log starts with "
+            f"{MCAP_MAGIC!r})"
+        )
+
+
 @dataclass
 class LogReader:
     """Front-to-back reader of one flight log that tolerates a missing end.
@@ -145,6 +163,8 @@ class LogReader:
     channels: dict[int, Channel] = field(default_factory=dict)
 
     def messages(self) -> Iterator[LogMessage]:
+        """Every readable message, in file order; raises `RecorderError` if it is not MCAP."""
+        require_mcap(self.path)
         with open(self.path, "rb") as stream:
             reader = StreamReader(stream, validate_crcs=True)
             records = reader.records
@@ -257,6 +277,7 @@ def recover_log(source: str | Path, destination: str | Path) -> int:
 
     For a file left by a killed writer: tools that need the summary section get one.
     """
+    require_mcap(Path(source))  # before the destination is created
     reader = LogReader(Path(source))
     count = 0
     with open(destination, "xb") as stream:

@@ -28,7 +28,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from companion.camera.layout import FACE_NAMES
-from companion.errors import ConfigError
+from companion.errors import ConfigError, problems_error
+from companion.sections import build_collecting
 from companion.validation import require_int_range, require_range
 
 SECTION = "cameras"
@@ -191,15 +192,42 @@ class CameraRigConfig:
         table = _require_table(SECTION, d)
         allowed = ("faces", "baud", "max_age_s", "max_skew_s", "reconnect_min_s",
                    "reconnect_max_s", "silence_timeout_s")  # fmt: skip
-        _check_keys(SECTION, table, allowed)
-        if "faces" not in table:
-            raise ConfigError(f"{SECTION}.faces: missing (one table per face: "
-                              f"{', '.join(FACE_NAMES)})")  # fmt: skip
-        faces_table = _require_table(f"{SECTION}.faces", table["faces"])
-        _check_keys(f"{SECTION}.faces", faces_table, FACE_NAMES)
-        faces = {
-            name: FaceCameraConfig.from_dict(value, where=f"{SECTION}.faces.{name}")
-            for name, value in faces_table.items()
-        }
+        problems: list[str] = []  # every problem of the section, reported at once
+        try:
+            _check_keys(SECTION, table, allowed)
+        except ConfigError as exc:
+            problems.append(str(exc))
         options = {key: table[key] for key in allowed[1:] if key in table}
-        return cls(faces=faces, **options)
+        if "faces" not in table:
+            problems.append(f"{SECTION}.faces: missing (one table per face: "
+                            f"{', '.join(FACE_NAMES)})")  # fmt: skip
+            build_collecting(cls, SECTION, {"faces": _placeholder_faces(), **options}, problems)
+            raise problems_error(problems)
+        faces_table = _require_table(f"{SECTION}.faces", table["faces"])
+        try:
+            _check_keys(f"{SECTION}.faces", faces_table, FACE_NAMES)
+        except ConfigError as exc:
+            problems.append(str(exc))
+        faces: dict[str, FaceCameraConfig] = {}
+        for name, value in faces_table.items():
+            if name not in FACE_NAMES:
+                continue
+            try:
+                faces[name] = FaceCameraConfig.from_dict(value, where=f"{SECTION}.faces.{name}")
+            except ConfigError as exc:
+                problems.append(str(exc))
+        complete = len(faces) == len(faces_table) and not problems
+        # With a face refused, check the other options against stand-in faces.
+        kwargs = {"faces": faces if complete else _placeholder_faces(), **options}
+        built = build_collecting(cls, SECTION, kwargs, problems)
+        if built is None or problems:
+            raise problems_error(problems)
+        return built
+
+
+def _placeholder_faces() -> dict[str, FaceCameraConfig]:
+    """Six valid faces, to check a `[cameras]` table's other options when its faces are bad."""
+    return {
+        name: FaceCameraConfig(device=f"/dev/placeholder-{name}", camera_id=f"{k + 1:024x}")
+        for k, name in enumerate(FACE_NAMES)
+    }

@@ -82,15 +82,23 @@ def test_check_names_every_problem_and_exits_1(
     assert "NOT READY: 3 problem(s): model, camera down, autopilot" in out
 
 
-def test_check_stops_at_an_invalid_config(
+def test_check_stops_at_an_invalid_config_and_lists_all_its_problems(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     path = tmp_path / "bad.toml"
-    path.write_text('[drone]\nid = "a b"\n[policy]\nmodel_path = "m.pt"\n[cameras]\n')
+    path.write_text(
+        '[drone]\nid = "a b"\n[policy]\nmodel_path = "m.pt"\n[cameras]\nbaud = 921600\n'
+        "[daemon]\nrate_hz = 5.0\n"
+    )
     assert cli.main(["check", "--config", str(path)]) == 1
     out = capsys.readouterr().out.splitlines()
-    assert out[0].startswith("[FAIL] config") and "drone.id: 'a b'" in out[0]
-    assert out[-1] == "NOT READY: 1 problem(s): config"
+    assert all(line.startswith("[FAIL] config") for line in out[:-1])
+    problems = "\n".join(out[:-1])
+    assert "drone.id: 'a b'" in problems
+    assert "daemon.rate_hz: 5 is outside the allowed range [10, 100]" in problems
+    assert "cameras.faces: missing" in problems
+    assert "cameras.baud: 921600" in problems
+    assert out[-1] == "NOT READY: 4 problem(s): config"
 
 
 def test_run_with_a_bad_config_exits_2_with_one_line(
@@ -117,6 +125,23 @@ def test_log_summary_of_a_recorded_flight(
 
     assert cli.main(["log", "summary", str(tmp_path / "none.mcap")]) == 2
     assert "no such flight log" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("content", [b"time,vx,vy\n0.0,1.0,0.0\n", b"\x89MCAX0\r\n" * 4])
+def test_log_summary_and_recover_refuse_a_file_that_is_not_mcap(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], content: bytes
+) -> None:
+    path = tmp_path / "flight.mcap"
+    path.write_bytes(content)
+    assert cli.main(["log", "summary", str(path)]) == 2
+    captured = capsys.readouterr()
+    assert "INCOMPLETE" not in captured.out
+    err = captured.err.strip()
+    assert err.startswith(f"companion: error: {path}: not an MCAP file") and "\n" not in err
+    out = tmp_path / "recovered.mcap"
+    assert cli.main(["log", "recover", str(path), str(out)]) == 2
+    assert "not an MCAP file" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_log_recover_completes_a_file_cut_by_a_crash(

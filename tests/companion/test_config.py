@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from companion.config import CompanionConfig, DaemonConfig, config_from_dict, load_config
-from companion.errors import ConfigError
+from companion.errors import ConfigError, ConfigErrors
 
 REPO = Path(__file__).resolve().parents[2]
 FACES = ("front", "right", "back", "left", "up", "down")
@@ -144,3 +144,43 @@ def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
         load_config(tmp_path / "nope.toml")
     with pytest.raises(ConfigError, match=r"bad\.toml: not valid TOML"):
         load_config(write(tmp_path, "[daemon\nrate_hz = 10", "bad.toml"))
+
+
+def test_every_problem_of_a_file_is_reported_at_once(tmp_path: Path) -> None:
+    # Three problems in three places: two fields of one section and a field of another.
+    text = MINIMAL + (
+        "\n[daemon]\nrate_hz = 5.0\nfailsafe_after_s = -1.0\n[control]\nv_max_mps = 0\n"
+    )
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigErrors) as info:
+        load_config(path)
+    problems = info.value.problems
+    assert len(problems) == 3
+    assert all(p.startswith(f"{path}: ") for p in problems)
+    assert any("daemon.rate_hz: 5 is outside the allowed range [10, 100]" in p for p in problems)
+    assert any("daemon.failsafe_after_s: -1 is outside the allowed range (0, 600]" in p
+               for p in problems)  # fmt: skip
+    assert any("control.v_max_mps: 0 is outside the allowed range (0, 20]" in p for p in problems)
+    assert str(info.value).startswith(f"{path}: 3 problems: daemon.rate_hz")
+    assert isinstance(info.value, ConfigError)  # callers that catch ConfigError still do
+
+
+def test_a_bad_face_and_a_bad_option_of_the_camera_section_are_both_reported(
+    tmp_path: Path,
+) -> None:
+    text = MINIMAL.replace("[cameras]\n", "[cameras]\nmax_age_s = 0\n").replace(
+        '"/dev/openmv-up"', '""'
+    )
+    with pytest.raises(ConfigErrors) as info:
+        load_config(write(tmp_path, text))
+    assert len(info.value.problems) == 2
+    assert "cameras.faces.up.device" in info.value.problems[0]
+    assert "cameras.max_age_s: 0 is outside" in info.value.problems[1]
+
+
+def test_a_cross_section_rule_is_not_reported_against_a_refused_section(tmp_path: Path) -> None:
+    # daemon.rate_hz is refused; autopilot's rate is not then compared with it.
+    text = MINIMAL + "\n[daemon]\nrate_hz = 5.0\n[autopilot]\nsetpoint_rate_hz = 5.0\n"
+    with pytest.raises(ConfigError, match=r"daemon\.rate_hz") as info:
+        load_config(write(tmp_path, text))
+    assert not isinstance(info.value, ConfigErrors)
