@@ -48,7 +48,7 @@ logger = logging.getLogger(__name__)
 
 FIRMWARE = "openmv-emulator-1.0.0"
 PLATFORM = "sim"
-POLL_S = 0.01  # connection polling period (the firmware polls DTR every 20 ms)
+POLL_S = 0.02  # connection polling period, as the firmware polls DTR every 20 ms
 
 
 def default_uid(face: str) -> str:
@@ -285,12 +285,15 @@ class CameraEmulator:
         cam.path.unlink(missing_ok=True)
 
     def _run(self) -> None:
+        next_service_s = self._clock()
         try:
             while not self._stop.is_set():
                 now_s = self._clock()
                 with self._lock:
-                    for cam in self._cameras.values():
-                        self._service(cam, now_s)
+                    if now_s >= next_service_s:
+                        next_service_s = now_s + POLL_S
+                        for cam in self._cameras.values():
+                            self._service(cam, now_s)
                     if self._source is None:
                         next_s = self._send_pushed(now_s)
                     elif now_s >= self._next_frame_s:
@@ -299,6 +302,7 @@ class CameraEmulator:
                     for cam in self._cameras.values():
                         self._flush(cam)
                     due_s = next_s if self._source is None else self._next_frame_s
+                    due_s = min(due_s, next_service_s)
                     wait_s = min(due_s - self._clock(), 0.002 if busy else POLL_S)
                 self._stop.wait(max(wait_s, 0.0005))
         except Exception:

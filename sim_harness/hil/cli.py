@@ -12,18 +12,15 @@ daemon output and MCAP flight log.
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 from typing import Any
 
 from companion.errors import ConfigError
 from companion.flocking import FlockingParams
 from sim_harness.experiments.suites import SHIPPED_LOW_PASS_HZ
+from sim_harness.hil.plans import PLANS_DIR
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
 from sim_harness.sim.scenarios import SCENARIOS, ScenarioConfig, build_scenario
-
-PLANS_DIR = Path(__file__).resolve().parent / "plans"
 
 
 def add_hil_commands(sub: Any) -> None:
@@ -130,7 +127,3 @@ def fly_in_process(config: ScenarioConfig, model: Path, duration_s: float) -> An
         return fly(scenario, controller, rates)
     finally:
         policy.close()
-
-
-if __name__ == "__main__":  # pragma: no cover
-    print(json.dumps({"plans": sorted(p.name for p in PLANS_DIR.glob("*.toml"))}), file=sys.stderr)

@@ -18,7 +18,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,9 +26,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from sim_harness.errors import SimError
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
-from sim_harness.hil.camera_emulator import CameraEmulator
+from sim_harness.hil.camera_side import RemoteCameras
 from sim_harness.hil.px4_messages import Home
 from sim_harness.hil.world_vehicle import WorldVehicle
 from sim_harness.learning.shipped import PROJECT_ROOT
@@ -86,12 +84,13 @@ class DroneSetup:
 
 
 class HilDrone:
-    """Cameras, autopilot emulator and daemon of one drone. `start()`, then `stop()`."""
+    """Autopilot emulator and daemon of one drone (its cameras live in the camera process)."""
 
     def __init__(
         self,
         setup: DroneSetup,
         vehicle: WorldVehicle,
+        cameras: RemoteCameras,
         home: Home,
         model_path: Path,
         daemon_overrides: dict[str, dict[str, Any]] | None = None,
@@ -99,7 +98,7 @@ class HilDrone:
         self.setup = setup
         self.vehicle = vehicle
         setup.folder.mkdir(parents=True, exist_ok=True)
-        self.cameras = CameraEmulator(setup.folder / "dev", source=None)
+        self.cameras = cameras
         altitude_m = float(vehicle.state().altitude_m)
         self.px4 = AutopilotEmulator(
             EmulatorConfig.hovering(
@@ -150,8 +149,7 @@ class HilDrone:
             doc.setdefault(section, {}).update(values)
         return doc
 
-    def start_emulators(self) -> None:
-        self.cameras.start()
+    def start_autopilot(self) -> None:
         self.px4.start()
 
     def start_daemon(self) -> None:
@@ -190,7 +188,7 @@ class HilDrone:
         return self.exit_code
 
     def stop(self, timeout_s: float = 10.0) -> None:
-        """SIGTERM, wait, SIGKILL what is left; then the emulators. Idempotent."""
+        """SIGTERM, wait, SIGKILL what is left; then the autopilot emulator. Idempotent."""
         if self.alive:
             self.signal_daemon(signal.SIGTERM)
             if self.wait_daemon(timeout_s) is None:
@@ -199,23 +197,9 @@ class HilDrone:
         elif self.process is not None:
             self.exit_code = self.process.poll()
         self.px4.stop()
-        self.cameras.close()
 
     def daemon_log_tail(self, lines: int = 5) -> str:
         path = self.setup.folder / "daemon.log"
         if not path.exists():
             return ""
         return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
-
-
-def wait_until(condition: Any, timeout_s: float, poll_s: float = 0.05) -> bool:
-    """Poll `condition()` until true or `timeout_s` passed; whether it became true."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(poll_s)
-    return bool(condition())
-
-
-__all__ = ["DroneSetup", "HilDrone", "SimError", "companion_command", "toml_text", "wait_until"]

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from companion.flight_log import TOPIC_FRAME, TOPIC_HEALTH, TOPIC_SETPOINT, LogReader
+from sim_harness.hil.camera_side import CaptureStats
 from sim_harness.hil.drone import HilDrone
 from sim_harness.hil.px4_logic import Px4Mode
 from sim_harness.hil.swarm import HilRun
@@ -79,10 +80,12 @@ def flight_log_stats(folder: Path) -> dict[str, Any]:
     }
 
 
-def drone_summary(drone: HilDrone, engage_s: float | None, flight_t0_px4: float) -> dict[str, Any]:
+def drone_summary(
+    drone: HilDrone, engage_s: float | None, flight_t0_px4: float, cameras: CaptureStats
+) -> dict[str, Any]:
     """One drone's row: engagement, modes (flight time, s), frames, and its flight log."""
     px4 = drone.px4
-    cams = [drone.cameras.stats(f) for f in ("front", "right", "back", "left", "up", "down")]
+    i = drone.setup.index
     return {
         "drone": drone.setup.drone_id,
         "engage_s_after_daemon_start": None if engage_s is None else round(engage_s, 2),
@@ -94,9 +97,9 @@ def drone_summary(drone: HilDrone, engage_s: float | None, flight_t0_px4: float)
         ],
         "final_mode": px4.mode.name,
         "ended_in_offboard": px4.mode is Px4Mode.OFFBOARD,
-        "frames_sent": sum(c.frames_sent for c in cams),
-        "frames_dropped": sum(c.frames_dropped for c in cams),
-        "camera_connections": [c.connections for c in cams],
+        "frames_sent": cameras.frames_sent[i] if cameras.frames_sent else None,
+        "frames_dropped": cameras.frames_dropped[i] if cameras.frames_dropped else None,
+        "camera_connections": cameras.connections[i] if cameras.connections else None,
         "migration_point_local_enu": (
             None
             if drone.setup.migration_point_local_enu is None
@@ -112,7 +115,7 @@ def write_results(run: HilRun, out_dir: Path, compare: FlightLog | None = None) 
     save_flight_figures(run.log, out_dir)
     summary = summarize(run.log)
     drones = [
-        drone_summary(d, e, t0)
+        drone_summary(d, e, t0, run.cameras)
         for d, e, t0 in zip(run.drones, run.engage_s, run.flight_t0_px4, strict=True)
     ]
     doc: dict[str, Any] = {

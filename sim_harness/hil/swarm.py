@@ -13,7 +13,10 @@ a step taken more than `late_physics_s` behind it is *late*; a capture rendered 
 `Lateness.valid` says whether the run stayed inside the stated thresholds; an invalid run is
 reported as such, never as a result.
 
-Cameras: each drone's six cameras capture together at 10 Hz with a per-drone phase (drones are
+Two processes, like the drone's two kinds of hardware: this one (physics and the PX4 emulators)
+and the camera process (`camera_side`: rendering and the pty cameras), which reads the poses
+from shared memory. Cameras: each drone's six cameras capture together at 10 Hz with a
+per-drone phase (drones are
 switched on at different times); each camera's frame then leaves after its own fixed transfer
 delay plus jitter (free-running OpenMV boards: exposure, readout and USB polling differ), so the
 daemon sees the six tiles arrive spread over up to `camera_delay_s[1]`, stamped with the capture
@@ -24,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,13 +37,18 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.camera.layout import split
+from sim_harness.hil.camera_side import (
+    CameraSide,
+    CameraSideConfig,
+    CaptureStats,
+    PoseBoard,
+    RemoteCameras,
+)
 from sim_harness.hil.drone import DroneSetup, HilDrone
 from sim_harness.hil.faults import FaultPlan, FaultRunner
 from sim_harness.hil.px4_logic import Px4Mode
-from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, WorldPose, WorldVehicle, home_of
+from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, WorldVehicle, home_of, states_ned
 from sim_harness.sim import metrics
-from sim_harness.sim.render import PyBulletRenderer, Renderer
 from sim_harness.sim.rollout import FlightLog, has_arrived
 from sim_harness.sim.scenarios import Scenario
 from sim_harness.sim.vehicle import VehicleModel, VehicleParams
@@ -84,6 +93,14 @@ class Lateness:
     frames_sent: int = 0
     frames_dropped: int = 0
     max_late_fraction: float = 0.01
+
+    def add_cameras(self, cameras: CaptureStats) -> None:
+        """The camera process's side of the timing."""
+        self.captures, self.captures_late = cameras.captures, cameras.captures_late
+        self.capture_max_late_s = cameras.capture_max_late_s
+        self.render_s = list(cameras.render_s)
+        self.frames_sent = sum(cameras.frames_sent)
+        self.frames_dropped = sum(cameras.frames_dropped)
 
     @property
     def physics_late_fraction(self) -> float:
@@ -131,6 +148,7 @@ class HilRun:
 
     log: FlightLog
     drones: list[HilDrone]
+    cameras: CaptureStats
     lateness: Lateness
     engage_s: list[float | None]  # per drone: seconds from daemon start to OFFBOARD
     flight_t0_px4: list[float]  # per drone: its PX4 emulator's clock at the flight's t = 0
@@ -148,15 +166,14 @@ class HilSwarm:
         out_dir: Path,
         config: HilConfig | None = None,
         faults: FaultPlan | None = None,
-        renderer: Renderer | None = None,
         vehicle_params: VehicleParams | None = None,
         progress: Callable[[str], None] | None = None,
     ) -> None:
         self.scenario = scenario
         self.config = config or HilConfig()
-        self.out_dir = out_dir
-        self.renderer = renderer or PyBulletRenderer()
+        self.model_path = model_path
         self.progress = progress or (lambda _msg: None)
+        self.plan = faults
         n = scenario.n_agents
         self.vehicle = VehicleModel(
             vehicle_params or VehicleParams(),
@@ -165,38 +182,57 @@ class HilSwarm:
         )
         rng = np.random.default_rng(self.config.seed)
         period = 1.0 / self.config.camera_rate_hz
-        self._phase_s = (np.arange(n) + rng.uniform(0, 1, n)) * period / n
-        lo, hi = self.config.camera_delay_s
-        self._delay_s = rng.uniform(lo, hi, (n, 6))
-        self._rng = rng
-        self.drones: list[HilDrone] = []
-        s = self.vehicle.state
-        for i in range(n):
-            home = np.array([s.pos_world_enu[i, 0], s.pos_world_enu[i, 1], 0.0])
-            goal = scenario.migration_points[i]
-            setup = DroneSetup(
+        self.phase_s = (np.arange(n) + rng.uniform(0, 1, n)) * period / n
+        self.delay_s = rng.uniform(*self.config.camera_delay_s, (n, 6))
+        pos = scenario.initial_pos_world_enu
+        self.homes = np.column_stack([pos[:, :2], np.zeros(n)])
+        self.setups = [
+            DroneSetup(
                 index=i,
-                home_world_enu=home,
-                migration_point_local_enu=None if np.isnan(goal).any() else goal - home,
+                home_world_enu=self.homes[i],
+                migration_point_local_enu=(
+                    None
+                    if np.isnan(scenario.migration_points[i]).any()
+                    else scenario.migration_points[i] - self.homes[i]
+                ),
                 folder=out_dir / f"drone{i + 1}",
             )
-            backend = WorldVehicle(home, self._pose(i))
-            self.drones.append(
-                HilDrone(
-                    setup,
-                    backend,
-                    home_of(DEFAULT_ORIGIN, home),
-                    model_path,
-                    self.config.daemon_overrides,
-                )
-            )
-        self.faults = FaultRunner(faults, self.drones) if faults is not None else None
+            for i in range(n)
+        ]
+        self.drones: list[HilDrone] = []
 
-    def _pose(self, i: int) -> WorldPose:
+    def _states(self) -> list[Any]:
         s = self.vehicle.state
-        return WorldPose(
-            s.pos_world_enu[i].copy(), s.vel_world_enu[i].copy(), self.vehicle.q_world_body[i]
+        return states_ned(s.pos_world_enu, s.vel_world_enu, self.vehicle.q_world_body, self.homes)
+
+    def _start(self) -> tuple[PoseBoard, CameraSide]:
+        """The pose board and the camera process first (before any thread), then the drones."""
+        cfg = self.config
+        board = PoseBoard(self.scenario.n_agents)
+        board.write(self.vehicle.state.pos_world_enu, self.vehicle.q_world_body)
+        side = CameraSide(
+            CameraSideConfig(
+                folders=tuple(setup.folder for setup in self.setups),
+                board_name=board.name,
+                phase_s=tuple(float(p) for p in self.phase_s),
+                delay_s=tuple(tuple(float(d) for d in row) for row in self.delay_s),
+                rate_hz=cfg.camera_rate_hz,
+                jitter_s=cfg.camera_jitter_s,
+                late_capture_s=cfg.late_capture_s,
+                seed=cfg.seed,
+            )
         )
+        for setup, state in zip(self.setups, self._states(), strict=True):
+            drone = HilDrone(
+                setup,
+                WorldVehicle(setup.home_world_enu, state),
+                RemoteCameras(side, setup.index),
+                home_of(DEFAULT_ORIGIN, setup.home_world_enu),
+                self.model_path,
+                cfg.daemon_overrides,
+            )
+            self.drones.append(drone)
+        return board, side
 
     # -- the loop ------------------------------------------------------------------------
 
@@ -209,42 +245,34 @@ class HilSwarm:
         engage_s: list[float | None] = [None] * n
         stop_reason = "time_limit"
         aborted = None
+        faults = None
+        flight_t0 = [0.0] * n
+        board, side = self._start()
         with World(n) as world:
             try:
+                side.start_capturing()
                 for drone in self.drones:
-                    drone.start_emulators()
+                    drone.start_autopilot()
                 for drone in self.drones:
                     drone.start_daemon()
                 daemon_t0 = [d.px4.now_s() for d in self.drones]
-                clock = _Clock(self, world, lateness)
+                clock = _Clock(self, world, board, lateness)
                 self.progress(f"started {n} daemons; waiting for OFFBOARD")
-
-                def engaged() -> bool:
-                    for i, drone in enumerate(self.drones):
-                        if engage_s[i] is None and drone.px4.mode is Px4Mode.OFFBOARD:
-                            first = next(
-                                m.t_s for m in drone.px4.mode_changes() if m.new is Px4Mode.OFFBOARD
-                            )
-                            engage_s[i] = first - daemon_t0[i]
-                    dead = [d for d in self.drones if not d.alive]
-                    if dead:
-                        raise _Abort(f"{dead[0].setup.drone_id} exited before engaging: "
-                                     f"{dead[0].daemon_log_tail(3)}")  # fmt: skip
-                    return all(e is not None for e in engage_s)
-
                 deadline = time.monotonic() + cfg.engage_timeout_s
-                while not engaged() and time.monotonic() < deadline:
+                while not self._engaged(engage_s, daemon_t0):
+                    if time.monotonic() > deadline:
+                        missing = [
+                            d.setup.drone_id
+                            for d, e in zip(self.drones, engage_s, strict=True)
+                            if e is None
+                        ]
+                        raise _Abort(f"not engaged after {cfg.engage_timeout_s:g} s: {missing}")
                     clock.advance_until(time.monotonic() + 0.05)
-                if not engaged():
-                    missing = [
-                        d.setup.drone_id
-                        for d, e in zip(self.drones, engage_s, strict=True)
-                        if e is None
-                    ]
-                    raise _Abort(f"not engaged after {cfg.engage_timeout_s:g} s: {missing}")
                 clock.reset_counters()
+                side.call("reset_stats")
                 flight_start = time.monotonic()
                 flight_t0 = [d.px4.now_s() for d in self.drones]
+                faults = FaultRunner(self.plan, self.drones) if self.plan is not None else None
                 self.progress(f"all engaged (last after {max(e or 0 for e in engage_s):.1f} s)")
                 steps = math.ceil(duration_s * cfg.rates.control_hz - 1e-9)
                 for step in range(steps + 1):
@@ -256,63 +284,71 @@ class HilSwarm:
                     rows["vel"].append(s.vel_world_enu.copy())
                     rows["q"].append(self.vehicle.q_world_body.copy())
                     rows["sp"].append(clock.setpoints.copy())
-                    if self.faults is not None:
-                        self.faults.poll(time.monotonic() - flight_start)
+                    if faults is not None:
+                        faults.poll(time.monotonic() - flight_start)
                     if has_arrived(self.scenario, s.pos_world_enu):
                         stop_reason = "arrived"
                         break
                     if step % max(1, int(cfg.rates.control_hz * 5)) == 0 and step:
                         self.progress(f"t = {step * cfg.rates.control_dt_s:.0f} s")
-                if self.faults is not None:
-                    self.faults.finish(time.monotonic() - flight_start)
+                if faults is not None:
+                    faults.finish(time.monotonic() - flight_start)
             except _Abort as exc:
                 aborted = str(exc)
-                flight_start = time.monotonic()
-                flight_t0 = [d.px4.now_s() for d in self.drones]
                 log.error("hil: %s", aborted)
             finally:
-                for drone in self.drones:
-                    drone.stop()
-            lateness.frames_sent = sum(
-                d.cameras.stats(f).frames_sent for d in self.drones for f in _faces()
-            )
-            lateness.frames_dropped = sum(
-                d.cameras.stats(f).frames_dropped for d in self.drones for f in _faces()
-            )
+                stop_all(self.drones)
+                cameras = side.stop()
+                board.close()
+        lateness.add_cameras(cameras)
         flight = _flight_log(self.scenario, cfg.rates, rows, contacts, stop_reason)
-        return HilRun(flight, self.drones, lateness, engage_s, flight_t0, self.faults, aborted)
+        return HilRun(flight, self.drones, cameras, lateness, engage_s, flight_t0, faults, aborted)
+
+    def _engaged(self, engage_s: list[float | None], daemon_t0: list[float]) -> bool:
+        """Note each drone's first OFFBOARD; True once all are; abort if a daemon died."""
+        for i, drone in enumerate(self.drones):
+            if engage_s[i] is None:
+                first = next(
+                    (m.t_s for m in drone.px4.mode_changes() if m.new is Px4Mode.OFFBOARD), None
+                )
+                if first is not None:
+                    engage_s[i] = first - daemon_t0[i]
+            if not drone.alive:
+                raise _Abort(
+                    f"{drone.setup.drone_id}'s daemon exited before the flight: "
+                    f"{drone.daemon_log_tail(3)}"
+                )
+        return all(e is not None for e in engage_s)
+
+
+def stop_all(drones: list[HilDrone], timeout_s: float = 10.0) -> None:
+    """SIGTERM every daemon at once (none is left hovering on frozen cameras while another
+    shuts down), wait for all, then close the emulators."""
+    for drone in drones:
+        drone.signal_daemon(signal.SIGTERM)
+    deadline = time.monotonic() + timeout_s
+    for drone in drones:
+        drone.wait_daemon(max(0.1, deadline - time.monotonic()))
+    for drone in drones:
+        drone.stop()
 
 
 class _Abort(Exception):
     """The flight cannot start or go on (a daemon died before engaging, a timeout)."""
 
 
-def _faces() -> tuple[str, ...]:
-    from companion.camera.layout import FACE_NAMES
-
-    return tuple(FACE_NAMES)
-
-
 class _Clock:
-    """Advances physics and camera captures to the wall clock, counting lateness."""
+    """Advances physics to the wall clock, counting lateness; poses go to the pose board."""
 
-    def __init__(self, swarm: HilSwarm, world: World, lateness: Lateness) -> None:
-        self.swarm, self.world, self.lateness = swarm, world, lateness
-        cfg = swarm.config
-        self.dt_s = cfg.rates.physics_dt_s
-        self.period_s = 1.0 / cfg.camera_rate_hz
-        now = time.monotonic()
-        self.next_physics = now
-        self.next_capture = now + swarm._phase_s
+    def __init__(self, swarm: HilSwarm, world: World, board: PoseBoard, lateness: Lateness) -> None:
+        self.swarm, self.world, self.board, self.lateness = swarm, world, board, lateness
+        self.dt_s = swarm.config.rates.physics_dt_s
+        self.next_physics = time.monotonic()
         self.setpoints = np.zeros((swarm.scenario.n_agents, 3))
 
     def reset_counters(self) -> None:
         keep = self.lateness.max_late_fraction
         self.lateness.__init__(max_late_fraction=keep)  # type: ignore[misc]
-
-    def advance(self) -> set[tuple[int, int]]:
-        """Do whatever is due now (physics steps, captures); contacts seen meanwhile."""
-        return self._run_due(time.monotonic())
 
     def advance_until(self, until: float) -> set[tuple[int, int]]:
         """Keep the world on the wall clock until monotonic time `until`."""
@@ -322,8 +358,7 @@ class _Clock:
             touching |= self._run_due(now)
             if now >= until:
                 return touching
-            next_event = min(self.next_physics, float(self.next_capture.min()), until)
-            time.sleep(max(0.0, next_event - time.monotonic()))
+            time.sleep(max(0.0, min(self.next_physics, until) - time.monotonic()))
 
     def _run_due(self, now: float) -> set[tuple[int, int]]:
         sw, lat = self.swarm, self.lateness
@@ -331,41 +366,19 @@ class _Clock:
         while self.next_physics <= now:
             behind = now - self.next_physics
             lat.physics_steps += 1
-            if behind > sw.config.late_physics_s:
-                lat.physics_late += 1
+            lat.physics_late += behind > sw.config.late_physics_s
             lat.physics_max_behind_s = max(lat.physics_max_behind_s, behind)
             self.setpoints = np.stack([d.vehicle.velocity_setpoint_enu() for d in sw.drones])
             sw.vehicle.step(self.setpoints, self.dt_s)
             s = sw.vehicle.state
+            q = sw.vehicle.q_world_body
+            self.board.write(s.pos_world_enu, q)
             if self.world.may_touch(s.pos_world_enu):
-                touching.update(self.world.contacts(s.pos_world_enu, sw.vehicle.q_world_body))
-            for i, drone in enumerate(sw.drones):
-                drone.vehicle.publish(sw._pose(i))
+                touching.update(self.world.contacts(s.pos_world_enu, q))
+            for drone, state in zip(sw.drones, sw._states(), strict=True):
+                drone.vehicle.publish(state)
             self.next_physics += self.dt_s
-        due = np.flatnonzero(self.next_capture <= now)
-        for i in due:
-            self._capture(int(i), float(self.next_capture[i]))
-            self.next_capture[i] += self.period_s
-            while self.next_capture[i] <= time.monotonic() - self.period_s:
-                self.next_capture[i] += self.period_s  # a whole period missed: skip it
-                lat.captures += 1
-                lat.captures_late += 1
         return touching
-
-    def _capture(self, i: int, instant: float) -> None:
-        sw, lat = self.swarm, self.lateness
-        started = time.monotonic()
-        late = started - instant
-        lat.captures += 1
-        if late > sw.config.late_capture_s:
-            lat.captures_late += 1
-        lat.capture_max_late_s = max(lat.capture_max_late_s, late)
-        s = sw.vehicle.state
-        image = sw.renderer.render(self.world, s.pos_world_enu, sw.vehicle.q_world_body, [i])[0]
-        done = time.monotonic()
-        lat.render_s.append(done - started)
-        jitter = sw._rng.uniform(0.0, sw.config.camera_jitter_s, 6)
-        sw.drones[i].cameras.push(split(image), done, done + sw._delay_s[i] + jitter)
 
 
 def _flight_log(

@@ -13,7 +13,6 @@ it was switched on), so its local NED position is the world position minus that 
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,30 +32,30 @@ def home_of(origin: Home, home_world_enu: FloatArray) -> Home:
     return Home(*origin.to_global(enu_to_ned(home_world_enu)))
 
 
-@dataclass(frozen=True)
-class WorldPose:
-    """A drone's state in the world: ENU position (3,), velocity (3,), q world <- body FLU."""
+def states_ned(
+    pos_world_enu: FloatArray,
+    vel_world_enu: FloatArray,
+    q_world_body: FloatArray,
+    homes: FloatArray,
+) -> list[VehicleStateNed]:
+    """Every drone's state as its own PX4 sees it (local NED from its home), vectorized.
 
-    pos_world_enu: FloatArray
-    vel_world_enu: FloatArray
-    q_world_body: FloatArray
+    (N, 3) positions and velocities, (N, 4) attitudes world ENU <- body FLU, (N, 3) homes (ENU).
+    """
+    pos_ned = enu_to_ned(pos_world_enu - homes)
+    vel_ned = enu_to_ned(vel_world_enu)
+    q_ned = quat_enu_flu_to_ned_frd(q_world_body)
+    return [VehicleStateNed(p, v, q) for p, v, q in zip(pos_ned, vel_ned, q_ned, strict=True)]
 
 
 class WorldVehicle:
     """`VehicleBackend` of one drone in the shared world (thread-safe)."""
 
-    def __init__(self, home_world_enu: FloatArray, pose: WorldPose) -> None:
+    def __init__(self, home_world_enu: FloatArray, state: VehicleStateNed) -> None:
         self.home_world_enu = np.asarray(home_world_enu, dtype=np.float64).copy()
         self._lock = threading.Lock()
         self._command: VelocityCommand | None = VelocityCommand(vel_ned_mps=np.zeros(3))
-        self._state = self._to_ned(pose)
-
-    def _to_ned(self, pose: WorldPose) -> VehicleStateNed:
-        return VehicleStateNed(
-            pos_ned_m=enu_to_ned(pose.pos_world_enu - self.home_world_enu),
-            vel_ned_mps=enu_to_ned(pose.vel_world_enu),
-            q_ned_frd_wxyz=quat_enu_flu_to_ned_frd(pose.q_world_body),
-        )
+        self._state = state
 
     # -- the emulator's side -------------------------------------------------------------
 
@@ -83,8 +82,7 @@ class WorldVehicle:
             return np.zeros(3)
         return ned_to_enu(vel)
 
-    def publish(self, pose: WorldPose) -> None:
-        """The world loop's latest state of this drone."""
-        state = self._to_ned(pose)
+    def publish(self, state: VehicleStateNed) -> None:
+        """The world loop's latest state of this drone (see `states_ned`)."""
         with self._lock:
             self._state = state
