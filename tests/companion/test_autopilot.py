@@ -65,8 +65,9 @@ def run(coro: Coroutine[Any, Any, None]) -> None:
     asyncio.run(coro)
 
 
-async def until(condition: Callable[[], bool], timeout_s: float = 5.0) -> None:
-    """Wait for `condition` (a hang guard, not a timing check)."""
+async def until(condition: Callable[[], bool], timeout_s: float = 15.0) -> None:
+    """Wait for `condition` (a hang guard, not a timing check: generous for a loaded machine;
+    it returns as soon as the condition holds)."""
     async with asyncio.timeout(timeout_s):
         while not condition():
             await asyncio.sleep(0.02)

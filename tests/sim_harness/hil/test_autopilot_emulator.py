@@ -22,6 +22,7 @@ from sim_harness.hil.emulated_vehicle import (
 from sim_harness.hil.px4_logic import LandedState, MavResult, Px4Logic, Px4LogicConfig, Px4Mode
 
 FAST = {"heartbeat_rate_hz": 20.0, "status_rate_hz": 10.0}
+GUARD_S = 10.0  # liveness bound for waits that end as soon as their message or state arrives
 
 
 class RawClient:
@@ -44,7 +45,7 @@ class RawClient:
         self.mav.seq = (self.mav.seq + 1) % 256
 
     def receive(
-        self, match: Callable[[mavlink.MAVLink_message], bool], timeout_s: float = 3.0
+        self, match: Callable[[mavlink.MAVLink_message], bool], timeout_s: float = GUARD_S
     ) -> mavlink.MAVLink_message | None:
         """The first received message that matches, or None after `timeout_s` (a hang guard)."""
         deadline = time.monotonic() + timeout_s
@@ -59,7 +60,7 @@ class RawClient:
                     return msg
         return None
 
-    def of_type(self, kind: str, timeout_s: float = 3.0) -> mavlink.MAVLink_message:
+    def of_type(self, kind: str, timeout_s: float = GUARD_S) -> mavlink.MAVLink_message:
         msg = self.receive(lambda m: m.get_type() == kind, timeout_s)
         assert msg is not None, f"no {kind} within {timeout_s} s"
         return msg
@@ -103,7 +104,7 @@ def wire() -> Iterator[Callable[..., tuple[AutopilotEmulator, RawClient]]]:
         client.close()
 
 
-def wait_for(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
+def wait_for(condition: Callable[[], bool], timeout_s: float = GUARD_S) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if condition():
@@ -275,19 +276,31 @@ def test_offboard_over_the_wire_refused_then_accepted_then_lost(wire) -> None:
     emulator, client = wire(hovering=True)
     set_mode = mavlink.MAV_CMD_DO_SET_MODE
     flag = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    loss_timeout_s = emulator.config.px4.offboard_loss_timeout_s  # COM_OF_LOSS_T, 0.5 s
     assert client.command(set_mode, flag, 6, 0) is MavResult.DENIED  # no setpoint yet
+    # Each request follows a fresh setpoint, as from MAVSDK's stream, so that a loaded machine
+    # that delays the test between the two requests cannot let the first one's setpoint expire.
     client.velocity_setpoint(mavlink.MAV_FRAME_LOCAL_NED, (1.0, 0.5, -0.2), math.pi / 2)
     assert client.command(set_mode, flag, 6, 0) is MavResult.ACCEPTED
+    client.velocity_setpoint(mavlink.MAV_FRAME_LOCAL_NED, (1.0, 0.5, -0.2), math.pi / 2)
     assert client.command(set_mode, flag, 6, 0) is MavResult.ACCEPTED  # a retry
-    assert emulator.mode is Px4Mode.OFFBOARD
     record = emulator.setpoints()[-1]
     assert (record.frame, record.type_mask) == (mavlink.MAV_FRAME_LOCAL_NED, 0b1001_1100_0111)
     assert (record.vx_mps, record.vy_mps) == (1.0, 0.5)
     assert record.vz_mps == pytest.approx(-0.2) and record.yaw_rad == pytest.approx(math.pi / 2)
     assert record.uses_velocity and record.uses_yaw and not record.uses_yaw_rate
-    # No further setpoints: PX4 falls back to HOLD after 0.5 s.
+    # No further setpoints: PX4 falls back to HOLD once the last one is loss_timeout_s old.
     assert wait_for(lambda: emulator.mode is Px4Mode.HOLD)
-    assert emulator.mode_changes()[-1].reason == "offboard setpoints lost"
+    entered, lost = emulator.mode_changes()[-2:]  # judged on the emulator's own timestamps
+    assert (entered.old, entered.new) == (Px4Mode.POSCTL, Px4Mode.OFFBOARD)
+    assert (lost.old, lost.new, lost.reason) == (
+        Px4Mode.OFFBOARD,
+        Px4Mode.HOLD,
+        "offboard setpoints lost",
+    )
+    # Never early; late by at most a physics step (20 ms), plus 1 s of margin for a thread
+    # that a loaded machine did not schedule.
+    assert loss_timeout_s < lost.t_s - record.t_s < loss_timeout_s + 1.0
     hb = client.receive(
         lambda m: m.get_type() == "HEARTBEAT" and m.custom_mode == Px4Mode.HOLD.custom_mode
     )
@@ -300,13 +313,17 @@ def test_offboard_over_the_wire_refused_then_accepted_then_lost(wire) -> None:
 
 
 def test_body_frame_velocity_is_rotated_by_the_heading(wire) -> None:
-    emulator, client = wire(hovering=True, start_yaw_rad=math.pi / 2)  # facing east
+    # Facing east. This test is about the frame, not the loss timeout: a generous one, so that a
+    # loaded machine pausing the test's 20 Hz stream cannot drop the vehicle to HOLD.
+    patient = Px4LogicConfig(offboard_loss_timeout_s=5.0)
+    emulator, client = wire(hovering=True, start_yaw_rad=math.pi / 2, px4=patient)
     flag = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     client.velocity_setpoint(mavlink.MAV_FRAME_BODY_NED, (1.0, 0.0, 0.0), math.pi / 2)
     assert client.command(mavlink.MAV_CMD_DO_SET_MODE, flag, 6, 0) is MavResult.ACCEPTED
     for _ in range(25):  # stream at 20 Hz for 1.25 s (4 time constants)
         client.velocity_setpoint(mavlink.MAV_FRAME_BODY_NED, (1.0, 0.0, 0.0), math.pi / 2)
         client.receive(lambda m: False, timeout_s=0.05)
+    assert emulator.mode is Px4Mode.OFFBOARD
     state = emulator.vehicle_state()
     assert state.vel_ned_mps[1] > 0.9  # forward = east
     assert abs(state.vel_ned_mps[0]) < 0.05
@@ -319,10 +336,12 @@ def test_pilot_switch_and_lost_link(wire) -> None:
     assert emulator.pilot_switch_mode(Px4Mode.ALTCTL) is MavResult.ACCEPTED
     assert Px4Mode.from_custom_mode(client.of_type("HEARTBEAT").custom_mode) is not None
     emulator.set_link_alive(False)
-    client.receive(lambda m: False, timeout_s=0.1)  # let what was in flight drain
+    client.receive(lambda m: False, timeout_s=0.25)  # let what was in flight drain
     assert client.receive(lambda m: True, timeout_s=0.3) is None  # silence
+    ignored = emulator.ignored_while_down
     client.velocity_setpoint(mavlink.MAV_FRAME_LOCAL_NED, (1.0, 0.0, 0.0), 0.0)
-    time.sleep(0.2)  # the emulator reads (and drops) it while the link is still down
+    # The emulator reads (and drops) it while the link is still down: wait until it did.
+    assert wait_for(lambda: emulator.ignored_while_down > ignored)
     emulator.set_link_alive(True)
     assert client.of_type("HEARTBEAT").custom_mode == Px4Mode.ALTCTL.custom_mode
     assert emulator.setpoints() == []  # what arrived while the link was down was dropped

@@ -19,6 +19,9 @@ from sim_harness.hil.camera_emulator import CameraEmulator
 
 RATE_HZ = 50.0
 TIMEOUT_S = 10.0  # liveness bound only; everything normally happens within a few frame periods
+# A pty holds ~12 kB: under 3 frames, 60 ms at RATE_HZ. A host that a loaded machine does not
+# schedule for longer makes the emulator drop frames (by design): the tests below allow for that
+# by reading the emulator's own counters instead of assuming an unbroken stream.
 
 
 def recording(n: int = 3) -> np.ndarray:
@@ -27,7 +30,10 @@ def recording(n: int = 3) -> np.ndarray:
 
 @pytest.fixture
 def emulator(tmp_path: Path) -> Iterator[CameraEmulator]:
-    with CameraEmulator(tmp_path, source=recording(), rate_hz=RATE_HZ) as emu:
+    # No STATUS and no repeated HELLO within a test (one HELLO per connection): a camera's
+    # sequence number then advances by exactly one per frame tick, whether sent or dropped.
+    quiet = {"hello_period_s": 600.0, "status_period_s": 600.0}
+    with CameraEmulator(tmp_path, source=recording(), rate_hz=RATE_HZ, **quiet) as emu:
         yield emu
 
 
@@ -69,21 +75,25 @@ def test_silent_until_opened_then_hello_and_recorded_frames(emulator: CameraEmul
     assert isinstance(hello, HelloMessage)
     assert (hello.seq, hello.unique_id, hello.camera_id) == (0, emulator.uid("back"), 2)
     got = frames(messages)
+    assert got[0].seq == 1  # the first frame tick after the HELLO
     first = next(k for k in range(3) if np.array_equal(got[0].image, tiles[k]))
-    for i, frame in enumerate(got):  # the recording plays in a loop, one stitched frame per tick
-        assert np.array_equal(frame.image, tiles[(first + i) % 3])
+    for frame in got:  # the recording plays in a loop, one stitched frame (and seq) per tick
+        assert np.array_equal(frame.image, tiles[(first + frame.seq - 1) % 3])
         assert frame.camera_id == 2 and not frame.image.flags.writeable
-    assert [f.seq for f in got] == list(range(got[0].seq, got[0].seq + len(got)))
+    assert all(b.seq > a.seq for a, b in itertools.pairwise(got))
     assert all(b.timestamp_us > a.timestamp_us for a, b in itertools.pairwise(got))
     counters = parser.counters
-    assert counters.dropped_bytes == 0 and counters.sequence_gaps == 0
+    assert counters.dropped_bytes == 0  # whole messages only, never a torn one
+    # A gap is only ever a frame the emulator dropped because this host was not reading (none
+    # on a quiet machine); the count only grows, so read after the port was closed.
+    assert counters.missed_messages <= emulator.stats("back").frames_dropped
 
 
 def test_reopen_announces_again_and_replug_reboots(emulator: CameraEmulator) -> None:
     path = emulator.device_path("left")
     with open_port(path) as port:
         first = read_until(port, FrameParser(), lambda m: len(frames(m)) >= 2)
-    time.sleep(0.05)
+    wait_until(lambda: not emulator.stats("left").host_connected, "the emulator to see the close")
     with open_port(path) as port:
         again = read_until(port, FrameParser(), lambda m: len(frames(m)) >= 1)
     assert isinstance(again[0], HelloMessage) and again[0].seq > first[-1].seq  # same boot
@@ -113,13 +123,16 @@ def test_unplug_removes_the_device_and_stall_silences_it(emulator: CameraEmulato
         parser = FrameParser()
         read_until(port, parser, lambda m: len(frames(m)) >= 1)
         emulator.stall("up")
-        time.sleep(0.05)  # let a message already in flight arrive
-        port.read(65536)
-        sent = emulator.stats("up").frames_sent
+        at_stall = emulator.stats("up")  # seq: the next message's number; none is built now
         time.sleep(0.1)  # five frame periods
-        assert port.read(65536) == b"" and emulator.stats("up").frames_sent == sent
+        after = emulator.stats("up")
+        assert (after.seq, after.frames_sent) == (at_stall.seq, at_stall.frames_sent)
+        # Only the rest of what was queued before the stall arrives (judged by seq, not by
+        # when it arrives: a loaded machine may deliver it late).
+        late = parser.feed(port.read(65536))
+        assert all(m.seq < at_stall.seq for m in late)
         emulator.resume("up")
-        read_until(port, parser, lambda m: len(frames(m)) >= 1)
+        read_until(port, parser, lambda m: any(f.seq >= at_stall.seq for f in frames(m)))
 
 
 def test_host_that_stops_reading_makes_frames_drop_not_block(emulator: CameraEmulator) -> None:
@@ -132,10 +145,12 @@ def test_host_that_stops_reading_makes_frames_drop_not_block(emulator: CameraEmu
             busy_parser,
             lambda m: len(frames(m)) >= 10 and emulator.stats("front").frames_dropped >= 5,
         )
-        # Dropped frames are sequence gaps that the host counts once it reads again.
+        # Dropped frames are sequence gaps that the host counts once it reads again (what the
+        # pty buffered comes first, then the gap: read until the gap shows, within TIMEOUT_S).
         parser = FrameParser()
-        read_until(idle, parser, lambda m: len(frames(m)) >= 3)
-        assert parser.counters.missed_messages >= 5
+        read_until(
+            idle, parser, lambda m: len(frames(m)) >= 3 and parser.counters.missed_messages >= 5
+        )
 
 
 def test_tile_source_callable_and_bad_sources(tmp_path: Path) -> None:
