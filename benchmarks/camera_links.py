@@ -31,6 +31,8 @@ from companion.camera.serial_link import links_from_config, run_links
 from companion.camera.slot import CameraFrame
 from sim_harness.hil.camera_emulator import CameraEmulator
 
+RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
+
 
 def percentiles_ms(values_s: list[float]) -> dict[str, float]:
     arr = np.asarray(values_s) * 1e3
@@ -104,7 +106,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--rate-hz", type=float, default=10.0)
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/camera_links.json"))
+    parser.add_argument("--out", type=Path, default=RESULTS / "camera_links.json")
     args = parser.parse_args()
     with (
         tempfile.TemporaryDirectory() as directory,

@@ -29,9 +29,12 @@ from sim_harness.experiments.vision_controller import (
     VisionController,
     load_policy,
 )
+from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
 from sim_harness.sim.world import SimRates
+
+RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
 
 STAGES = ("render", "inference", "physics", "other")
 
@@ -77,12 +80,12 @@ def measure(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--model", type=Path, default=Path("models/swarm_cnn.pt"))
+    parser.add_argument("--model", type=Path, default=SHIPPED_MODEL_PATH)
     parser.add_argument("--agents", type=int, nargs="+", default=[9, 12])
     parser.add_argument("--sim-seconds", type=float, default=10.0)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/closed_loop_rtf.json"))
+    parser.add_argument("--out", type=Path, default=RESULTS / "closed_loop_rtf.json")
     args = parser.parse_args()
     rates = SimRates()
     load_before = os.getloadavg()[0]

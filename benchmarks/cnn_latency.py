@@ -43,6 +43,8 @@ from companion.model_file import enable_graph_fusion, graph_is_fused
 from sim_harness.learning.export import export_policy, load_eager_model
 from sim_harness.learning.model import DroNet, build_model
 
+RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
+
 Policy = Callable[[torch.Tensor], torch.Tensor]
 WARMUP_CALLS = 50  # compiles the fused plan (2 calls), then lets allocator and caches settle
 
@@ -136,7 +138,7 @@ def main() -> None:
     parser.add_argument("--compare", type=Path, default=None, help="another policy file (unfused)")
     parser.add_argument("--calls", type=int, default=2000, help="batch-1 calls per variant")
     parser.add_argument("--rounds", type=int, default=10)
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/cnn_latency.json"))
+    parser.add_argument("--out", type=Path, default=RESULTS / "cnn_latency.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
     load_before = os.getloadavg()

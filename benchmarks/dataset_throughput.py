@@ -24,6 +24,8 @@ from pathlib import Path
 from sim_harness.dataset.generate import generate
 from sim_harness.dataset.spec import DatasetSpec
 
+RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
+
 
 def measure(workers: int, samples: int, repeats: int) -> dict[str, object]:
     rates, shares = [], []
@@ -50,9 +52,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--samples", type=int, default=2000, help="training samples per repeat")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument(
-        "--out", type=Path, default=Path("benchmarks/results/dataset_throughput.json")
-    )
+    parser.add_argument("--out", type=Path, default=RESULTS / "dataset_throughput.json")
     args = parser.parse_args()
     cores = os.cpu_count() or 1
     rows = [measure(1, args.samples, args.repeats)]

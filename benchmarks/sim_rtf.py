@@ -24,6 +24,8 @@ from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
 from sim_harness.sim.world import SimRates
 
+RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
+
 
 def measure(n_agents: int, sim_seconds: float, repeats: int, rates: SimRates) -> dict[str, float]:
     walls = []
@@ -55,7 +57,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--physics-hz", type=int, default=100)
     parser.add_argument("--control-hz", type=int, default=10)
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/sim_rtf.json"))
+    parser.add_argument("--out", type=Path, default=RESULTS / "sim_rtf.json")
     args = parser.parse_args()
     rates = SimRates(args.physics_hz, args.control_hz)
     results = [measure(n, args.sim_seconds, args.repeats, rates) for n in args.agents]

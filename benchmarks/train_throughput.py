@@ -26,6 +26,8 @@ import torch
 from sim_harness.learning.batches import InMemorySplit, load_batch, shuffled_batches
 from sim_harness.learning.train import TrainConfig, resolve_device, train_on
 
+RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
+
 
 def loop_throughput(samples: int, epochs: int, device: str, threads: int) -> list[float]:
     rng = np.random.default_rng(0)
@@ -71,9 +73,7 @@ def main() -> None:
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu")
     parser.add_argument("--dataset", type=Path, default=None, help="also time the loader on it")
     parser.add_argument("--loader-batches", type=int, default=200)
-    parser.add_argument(
-        "--out", type=Path, default=Path("benchmarks/results/train_throughput.json")
-    )
+    parser.add_argument("--out", type=Path, default=RESULTS / "train_throughput.json")
     args = parser.parse_args()
     load_before = os.getloadavg()
     device = str(resolve_device(args.device))

@@ -13,6 +13,7 @@ from sim_harness.dataset.inspect import inspect_dataset
 from sim_harness.dataset.spec import PRESETS, DatasetSpec
 from sim_harness.dataset.store import open_dataset
 from sim_harness.errors import ConfigError
+from sim_harness.sim.out_dir import require_writable_dir
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -47,7 +48,10 @@ def add_dataset_commands(sub: Any) -> Any:
     i = dsub.add_parser("inspect", help="counts, splits, terminations, target stats, figures")
     i.add_argument("dataset", type=Path)
     i.add_argument(
-        "--out", type=Path, default=None, help="figures folder (default DATASET/inspect)"
+        "--out",
+        type=Path,
+        default=None,
+        help="figures folder (default runs/inspect/<dataset name>; never the dataset itself)",
     )
     i.set_defaults(handler=_inspect)
     m = dsub.add_parser("merge", help="unite shards made with the same parameters")
@@ -76,6 +80,7 @@ def _generate(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     out = args.out or Path("data") / f"{args.preset}-s{args.seed}"
+    require_writable_dir(out)
     try:
         dataset = generate(
             out, spec, workers=args.workers, progress=not args.no_progress, command=command_line()
@@ -98,13 +103,15 @@ def _generate(args: argparse.Namespace) -> int:
 
 def _inspect(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.dataset)
-    report = inspect_dataset(dataset, args.out or args.dataset / "inspect")
+    out = args.out or Path("runs") / "inspect" / args.dataset.resolve().name
+    report = inspect_dataset(dataset, require_writable_dir(out))
     print(report["text"])
     print(f"\nwrote {report['histogram']} and {report['samples']}")
     return 0
 
 
 def _merge(args: argparse.Namespace) -> int:
+    require_writable_dir(args.out)
     dataset = merge(args.sources, args.out, command=command_line())
     counts = dataset.manifest["counts"]
     print(f"wrote {args.out}: train {counts['train']}, val {counts['val']}, test {counts['test']}")

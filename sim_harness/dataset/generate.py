@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from companion.camera.layout import camera_spec
 from sim_harness.dataset.runs import simulate_run
@@ -48,6 +47,7 @@ from sim_harness.dataset.store import (
     write_run,
 )
 from sim_harness.errors import DatasetError
+from sim_harness.sim.progress import ProgressBar, progress_bar
 from sim_harness.sim.render import PyBulletRenderer
 from sim_harness.sim.scene import SceneSpec
 from sim_harness.sim.vehicle import VehicleParams
@@ -169,17 +169,22 @@ def _generate_split(
     state = _SplitProgress(root, spec, split)
     in_flight: dict[Future[tuple[int, StageTimes]], int] = {}
 
-    def record(k: int, n: int, t: StageTimes, bar: tqdm[Any]) -> None:
+    def record(k: int, n: int, t: StageTimes, bar: ProgressBar[Any]) -> None:
         state.sizes[k] = n
         times.add(t)
-        bar.update(max(0, min(state.prefix()[1], state.target) - bar.n))
+        # A split ends with its last whole run, past the target: the bar counts what is kept.
+        kept = state.prefix()[1]
+        if kept > (bar.total or 0):
+            bar.total = kept
+        bar.update(max(0, kept - bar.n))
 
-    with tqdm(
-        total=state.target,
-        initial=min(state.prefix()[1], state.target),
+    kept = state.prefix()[1]  # runs already on disk (a resumed generation)
+    with progress_bar(
+        total=max(state.target, kept),
+        initial=kept,
         desc=f"{split:5s}",
+        enabled=progress,
         unit=" samples",
-        disable=not progress,
         smoothing=0.05,
     ) as bar:
         while not state.done():

@@ -13,6 +13,7 @@ import numpy as np
 
 from sim_harness.dataset.spec import SPLITS, TERMINATIONS
 from sim_harness.dataset.store import Dataset
+from sim_harness.errors import DatasetError
 
 AXES = ("x (forward)", "y (left)", "z (up)")
 
@@ -71,9 +72,10 @@ def save_sample_grid(dataset: Dataset, path: Path, n: int = 8, seed: int = 0) ->
     rng = np.random.default_rng(seed)
     picks = np.sort(rng.choice(split.n_samples, size=min(n, split.n_samples), replace=False))
     meta = split.meta
+    images = split.read_images(picks.tolist())  # no image cache written into the dataset
     fig, axes = plt.subplots(len(picks), 1, figsize=(12, 1.45 * len(picks)), squeeze=False)
-    for ax, i in zip(axes[:, 0], picks, strict=True):
-        ax.imshow(split.images[i], cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+    for ax, i, image in zip(axes[:, 0], picks, images, strict=True):
+        ax.imshow(image, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
         t = split.targets[i]
         ax.set_title(
             f"run {meta['run'][i]}, agent {meta['agent'][i]}, t = {meta['time_s'][i]:.1f} s, "
@@ -94,7 +96,13 @@ def save_sample_grid(dataset: Dataset, path: Path, n: int = 8, seed: int = 0) ->
 
 
 def inspect_dataset(dataset: Dataset, out: Path) -> dict[str, Any]:
-    """Print-ready text plus the two figures written into `out`."""
+    """Print-ready text plus the two figures written into `out` (never the dataset folder)."""
+    root = dataset.root.resolve()
+    if out.resolve() == root or root in out.resolve().parents:
+        raise DatasetError(
+            f"out: {out} is inside the dataset {dataset.root}; inspect writes its figures "
+            "elsewhere (default runs/inspect/<dataset name>)"
+        )
     return {
         "text": describe(dataset),
         "histogram": save_target_histograms(dataset, out / "targets_hist.png"),

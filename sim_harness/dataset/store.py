@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -187,6 +187,25 @@ class SplitData:
     def meta(self) -> dict[str, NDArray[np.generic]]:
         """Per-sample arrays: run, agent, time_s, pos/vel (world ENU), q_world_body, etc."""
         return {k: v for k, v in self._load_small().items() if k != "targets"}
+
+    def read_images(self, indices: Sequence[int]) -> NDArray[np.uint8]:
+        """(k, 64, 384) uint8: these samples' images, read from their run files.
+
+        For a few samples (figures, spot checks): unlike `images`, it writes no cache.
+        """
+        runs = self._load_small()["run"]
+        keys, first = np.unique(runs, return_index=True)
+        start = dict(zip(keys.tolist(), first.tolist(), strict=True))
+        wanted: dict[int, list[tuple[int, int]]] = {}
+        for j, i in enumerate(indices):
+            wanted.setdefault(int(runs[i]), []).append((j, int(i)))
+        out = np.empty((len(indices), IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX), dtype=np.uint8)
+        for k, picks in wanted.items():
+            with np.load(run_path(self.root, self.name, k)) as z:
+                images = z["images"]
+            for j, i in picks:
+                out[j] = images[i - start[k]]
+        return out
 
     @cached_property
     def images(self) -> NDArray[np.uint8]:

@@ -38,7 +38,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from tqdm import tqdm
 
 from companion.validation import require_int_range
 from sim_harness.dataset.generate import check_or_write_spec, finalize
@@ -59,6 +58,7 @@ from sim_harness.experiments.vision_controller import (
     VisionController,
     load_policy,
 )
+from sim_harness.sim.progress import progress_bar
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import build_scenario
 
@@ -247,7 +247,9 @@ def aggregate(
     todo = [k for k in range(config.runs) if k not in done]
     ctx = mp.get_context("spawn")
     with (
-        tqdm(total=config.runs, initial=len(done), unit="run", disable=not progress) as bar,
+        progress_bar(
+            total=config.runs, initial=len(done), desc="aggregate", enabled=progress, unit="run"
+        ) as bar,
         ProcessPoolExecutor(
             config.workers, ctx, initializer=_init_worker, initargs=(config.model_path,)
         ) as pool,

@@ -32,6 +32,7 @@ from sim_harness.experiments.suites import (
     SUITES,
     SuiteConfig,
 )
+from sim_harness.sim.out_dir import require_writable_dir
 from sim_harness.sim.world import SimRates
 
 if TYPE_CHECKING:
@@ -39,12 +40,24 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-DEMO_SEEDS = 1  # one CNN flight each of common (~45 s wall) and opposing (~80 s) on 2 cores
+DEMO_SEEDS = 1
+# How long the demo takes (4 flights; the two CNN flights render 9 x 6 views per step and take
+# most of it): measured 75 s on 2 idle cores, 94 s on a busy machine. The README says the same.
+DEMO_DURATION = "about 1.5 min on 2 cores"
 HOW_TO_GET_A_MODEL = (
     "make one with `swarm-sim dataset generate --preset quick`, "
     "`swarm-sim train --dataset data/quick-s0`, then `swarm-sim export --checkpoint "
-    "runs/train/quick-s0 --dataset data/quick-s0 --out models/swarm_cnn.pt`; or pass --model PATH"
+    f"runs/train/quick-s0 --dataset data/quick-s0` (writes {SHIPPED_MODEL_PATH}); "
+    "or pass --model PATH"
 )
+
+
+def require_model(path: Path) -> Path:
+    """Return `path` if the policy file exists; else raise `ModelError` naming where it looked."""
+    if not path.is_file():
+        looked = path if path.is_absolute() else f"{path} (that is, {path.absolute()})"
+        raise ModelError(f"no model at {looked}: {HOW_TO_GET_A_MODEL}")
+    return path
 
 
 def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_help: str) -> None:
@@ -76,6 +89,11 @@ def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_hel
     )
     p.add_argument("--no-gradcam", action="store_true", help="skip the Grad-CAM strip")
     p.add_argument("--quiet", action="store_true", help="no line per flight")
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress during each flight (a bar on a terminal, else a line every 10 %%)",
+    )
 
 
 def _cutoff(text: str) -> float | None:
@@ -94,10 +112,11 @@ def add_experiment_commands(sub: Any) -> None:
     """Register `demo` and `experiments` on the top-level subparsers."""
     demo = sub.add_parser(
         "demo",
-        help="9 drones, common and opposing goals, flown by the shipped CNN and by the teacher",
+        help="9 drones, common and opposing goals, flown by the shipped CNN and by the teacher "
+        f"({DEMO_DURATION})",
         description="The main job: flies the 9-drone common-goal and opposing-goals experiments "
         "with the shipped model and with the position-based teacher (same seeds) and writes the "
-        "report. A few minutes on 2 cores.",
+        f"report, showing each flight's progress. Takes {DEMO_DURATION}.",
     )
     _add_common_options(demo, Path("runs/demo"), f"seeds per experiment (default {DEMO_SEEDS})")
     demo.set_defaults(handler=_demo)
@@ -130,9 +149,10 @@ def _describe(record: RunRecord) -> str:
     )
 
 
-def _run(args: argparse.Namespace, suite: str, default_seeds: int | None) -> int:
-    if not args.model.exists():
-        raise ModelError(f"no model at {args.model}: {HOW_TO_GET_A_MODEL}")
+def _run(
+    args: argparse.Namespace, suite: str, default_seeds: int | None, demo: bool = False
+) -> int:
+    require_model(args.model)
     config = SuiteConfig(
         suite=suite,
         model_path=args.model,
@@ -143,6 +163,7 @@ def _run(args: argparse.Namespace, suite: str, default_seeds: int | None) -> int
         rates=SimRates(),
         duration_s=args.duration,
     )
+    require_writable_dir(args.out)
     n_flights = 2 * len(config.experiment_list) * len(config.seeds)
     print(f"{suite}: {n_flights} flights (teacher and CNN, seeds {config.seeds[0]}..)", flush=True)
 
@@ -151,21 +172,23 @@ def _run(args: argparse.Namespace, suite: str, default_seeds: int | None) -> int
             print(f"[{done}/{total}] {_describe(record)}", flush=True)
 
     # torch and matplotlib load here, not when the CLI starts.
-    from sim_harness.experiments.report import write_report
+    from sim_harness.experiments.report import bar_scope, write_report
     from sim_harness.experiments.runner import run_suite, save_runs
     from sim_harness.experiments.stats import bar_checks
 
-    result = run_suite(config, on_run=progress)
+    result = run_suite(config, on_run=progress, progress=not args.no_progress)
     save_runs(result, args.out)
-    report = write_report(result, args.out, gradcam=not args.no_gradcam)
+    report = write_report(result, args.out, gradcam=not args.no_gradcam, demo=demo)
+    scope = bar_scope(config, demo)
     for check in bar_checks(result):
-        print(f"bar: {'pass' if check.passed else 'FAIL'}: {check.name} ({check.detail})")
+        verdict = "pass" if check.passed else "FAIL"
+        print(f"bar ({scope}): {verdict}: {check.name} ({check.detail})")
     print(f"report: {report} (flights in {args.out / 'runs'})")
     return 0
 
 
 def _demo(args: argparse.Namespace) -> int:
-    return _run(args, "paper", DEMO_SEEDS)
+    return _run(args, "paper", DEMO_SEEDS, demo=True)
 
 
 def _experiments(args: argparse.Namespace) -> int:
@@ -206,13 +229,14 @@ def add_aggregate_command(dsub: Any) -> None:
 
 def _aggregate(args: argparse.Namespace) -> int:
     config = AggregateConfig(
-        model_path=args.model or SHIPPED_MODEL_PATH,
+        model_path=require_model(args.model or SHIPPED_MODEL_PATH),
         runs=args.runs,
         experiments=tuple(e.strip() for e in args.experiments.split(",") if e.strip()),
         seed_base=args.seed_base,
         workers=args.workers,
         rules=default_rules(args.dispersion_m, args.max_run_s),
     )
+    require_writable_dir(args.out)
     started = time.perf_counter()
     try:
         dataset = aggregate(args.out, config, not args.no_progress, command_line())

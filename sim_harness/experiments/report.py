@@ -23,8 +23,14 @@ from typing import Any
 from sim_harness.experiments import stats as suite_stats
 from sim_harness.experiments.gradcam_strip import save_gradcam_strip
 from sim_harness.experiments.runner import RunRecord, SuiteResult
-from sim_harness.experiments.suites import CONTROLLERS, EXPERIMENTS, LABELS
-from sim_harness.sim.plots import save_comparison_figure
+from sim_harness.experiments.suites import (
+    CONTROLLERS,
+    DEFAULT_SEEDS,
+    EXPERIMENTS,
+    LABELS,
+    SuiteConfig,
+)
+from sim_harness.sim.plots import BANDS_KEY, TRAJECTORY_KEY, save_comparison_figure
 from sim_harness.sim.rollout import FlightLog
 
 log = logging.getLogger(__name__)
@@ -104,19 +110,21 @@ def _figure_columns(
     return {EXPERIMENTS[k].title: {LABELS[c]: result.logs(k, c) for c in CONTROLLERS} for k in keys}
 
 
-def _figures(result: SuiteResult, out_dir: Path) -> list[tuple[Path, str]]:
+def _figures(result: SuiteResult, out_dir: Path) -> list[tuple[Path, str, str]]:
     flown = [e.key for e in result.config.experiment_list]
     paper = [k for k in ("common", "opposing") if k in flown]
-    figures: list[tuple[Path, str]] = []
+    figures: list[tuple[Path, str, str]] = []
+    key = f"{TRAJECTORY_KEY}. Below them, the {BANDS_KEY}"
     if len(paper) == 2:
         path = save_comparison_figure(_figure_columns(result, paper), out_dir / "paper_figure.png")
-        figures.append((path, "The paper's figure: teacher and CNN, common and opposing goals"))
+        title = "The paper's figure: teacher and CNN, common and opposing goals"
+        figures.append((path, title, key))
     others = [k for k in flown if len(paper) < 2 or k not in paper]
     if others:
         path = save_comparison_figure(
             _figure_columns(result, others), out_dir / "experiments_figure.png", dpi=70
         )
-        figures.append((path, "Teacher and CNN, one column per experiment"))
+        figures.append((path, "Teacher and CNN, one column per experiment", key))
     return figures
 
 
@@ -138,7 +146,8 @@ def _model_lines(result: SuiteResult) -> list[str]:
     dataset = meta.get("dataset")
     if isinstance(dataset, dict) and dataset.get("id"):
         counts = dataset.get("counts")
-        lines.append(f"- Trained on dataset `{dataset['id']}` (samples per split: {counts})")
+        samples = f" ({_counts_text(counts)} samples)" if isinstance(counts, dict) else ""
+        lines.append(f"- Trained on dataset `{dataset['id']}`{samples}")
     block = _find_per_axis(meta.get("test_metrics"))
     if block is not None:
         r2 = {k: v.get("r2") for k, v in block["per_axis"].items() if isinstance(v, dict)}
@@ -146,9 +155,42 @@ def _model_lines(result: SuiteResult) -> list[str]:
         parts = ", ".join(f"{k} {_num(v)}" for k, v in r2.items())
         lines.append(f"- Test split R²: {parts}; overall {_num(overall)}")
     training = meta.get("training")
-    if isinstance(training, dict) and training.get("command"):
-        lines.append(f"- Training command: `{training['command']}`")
+    if isinstance(training, dict):
+        lines += _training_lines(training)
     return lines
+
+
+def _counts_text(counts: dict[str, Any]) -> str:
+    """Samples per split as `train 423,693 / val 8,622 / test 8,037`."""
+    order = [s for s in ("train", "val", "test") if s in counts]
+    order += sorted(s for s in counts if s not in order)
+    return " / ".join(
+        f"{s} {counts[s]:,}" if isinstance(counts[s], int) else f"{s} {counts[s]}" for s in order
+    )
+
+
+def _training_lines(training: dict[str, Any]) -> list[str]:
+    """Every training command that led to the model, first to last, when its metadata has them.
+
+    `training.chain` (recorded by `swarm-sim export`) lists them; an older export records only its
+    last command, which the report then says.
+    """
+    chain = training.get("chain")
+    if isinstance(chain, list) and chain:
+        lines = ["- Training commands, first to last:"]
+        lines += [f"  {k}. `{command}`" for k, command in enumerate(chain, start=1)]
+        if not training.get("chain_complete", True):
+            lines.append("  (the steps before the first one are not recorded)")
+        return lines
+    command = training.get("command")
+    if not command:
+        return []
+    config = training.get("config")
+    init_from = config.get("init_from") if isinstance(config, dict) else None
+    what = f"a fine-tune of `{init_from}`; " if init_from else ""
+    return [
+        f"- Training command ({what}the model's metadata records only this last step): `{command}`"
+    ]
 
 
 def _timing_lines(result: SuiteResult) -> list[str]:
@@ -183,8 +225,21 @@ def _timing_lines(result: SuiteResult) -> list[str]:
     return _table(header, rows)
 
 
-def write_report(result: SuiteResult, out_dir: Path, gradcam: bool = True) -> Path:
-    """Write `report.md`, its figures and `results.json` into `out_dir`; returns the report."""
+def bar_scope(config: SuiteConfig, demo: bool = False) -> str:
+    """What the bar was checked on: `10 seeds`, or e.g. `demo checks, 1 seed` below the bar's."""
+    n = len(config.seeds)
+    seeds = f"{n} seed" + ("" if n == 1 else "s")
+    if n >= DEFAULT_SEEDS["bar"]:
+        return seeds
+    return f"{'demo' if demo else config.suite + ' suite'} checks, {seeds}"
+
+
+def write_report(
+    result: SuiteResult, out_dir: Path, gradcam: bool = True, demo: bool = False
+) -> Path:
+    """Write `report.md`, its figures and `results.json` into `out_dir`; returns the report.
+
+    `demo`: the suite is `swarm-sim demo`'s (its bar heading says so)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg = result.config
     seeds = cfg.seeds
@@ -208,14 +263,23 @@ def write_report(result: SuiteResult, out_dir: Path, gradcam: bool = True) -> Pa
     checks = suite_stats.bar_checks(result)
     if checks:
         passed = all(c.passed for c in checks)
-        lines += [f"## The bar: {'met' if passed else 'NOT met'}", ""]
+        verdict = "met" if passed else "NOT met"
+        lines += [f"## The bar ({bar_scope(cfg, demo)}): {verdict}", ""]
+        if len(seeds) < DEFAULT_SEEDS["bar"]:
+            lines += [
+                f"Checked on these {len(seeds)}-seed flights only. The bar itself is judged on "
+                f"{DEFAULT_SEEDS['bar']} evaluation seeds (`swarm-sim experiments --suite bar "
+                "--workers 2`; the README gives the shipped model's result), where a verdict can "
+                "differ.",
+                "",
+            ]
         lines += _table(
             ["criterion", "result", "measured"],
             [[c.name, "pass" if c.passed else "FAIL", c.detail] for c in checks],
         )
     lines += ["## Figures", ""]
-    for path, caption in _figures(result, out_dir):
-        lines += [f"![{caption}]({path.name})", "", f"*{caption}.*", ""]
+    for path, title, key in _figures(result, out_dir):
+        lines += [f"![{title}]({path.name})", "", f"*{title}. {key}.*", ""]
     tables: dict[str, Any] = {}
     for e in cfg.experiment_list:
         table = suite_stats.experiment_table(result, e.key)

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.policy import Policy
-from sim_harness.experiments.suites import CONTROLLERS, EXPERIMENTS, SuiteConfig
+from sim_harness.experiments.suites import CONTROLLERS, EXPERIMENTS, LABELS, SuiteConfig
 from sim_harness.experiments.vision_controller import (
     VisionControlConfig,
     VisionController,
@@ -88,11 +88,24 @@ def _controller(job: Job, config: SuiteConfig, policy: Policy | None) -> Control
     return VisionController(policy, law, config.rates.control_dt_s)
 
 
-def fly_job(job: Job, config: SuiteConfig, policy: Policy | None) -> RunRecord:
-    """Fly one (experiment, controller, seed) of the suite."""
+def fly_job(
+    job: Job,
+    config: SuiteConfig,
+    policy: Policy | None,
+    progress: bool = False,
+    progress_lines: bool | None = None,
+) -> RunRecord:
+    """Fly one (experiment, controller, seed) of the suite, with a progress bar if `progress`."""
     experiment = EXPERIMENTS[job.experiment]
     scenario = build_scenario(experiment.scenario_config(job.seed, config.duration_s))
-    flight = fly(scenario, _controller(job, config, policy), config.rates)
+    flight = fly(
+        scenario,
+        _controller(job, config, policy),
+        config.rates,
+        progress=progress,
+        progress_label=f"{job.experiment} / {LABELS[job.controller]} / seed {job.seed}",
+        progress_lines=progress_lines,
+    )
     return RunRecord(job.experiment, job.controller, job.seed, flight, summarize(flight))
 
 
@@ -104,30 +117,35 @@ def _init_worker(model_path: Path) -> None:
     _worker_policy = load_policy(model_path, threads=1)
 
 
-def _fly_in_worker(job: Job, config: SuiteConfig) -> RunRecord:
-    return fly_job(job, config, _worker_policy)
+def _fly_in_worker(job: Job, config: SuiteConfig, progress: bool) -> RunRecord:
+    # Workers share the terminal: redrawn bars would overwrite each other, so plain lines.
+    return fly_job(job, config, _worker_policy, progress, progress_lines=True)
 
 
 def _run_jobs(
-    jobs: list[Job], config: SuiteConfig, policy: Policy
+    jobs: list[Job], config: SuiteConfig, policy: Policy, progress: bool
 ) -> Iterator[tuple[Job, RunRecord]]:
     if config.workers == 1:
         for job in jobs:
-            yield job, fly_job(job, config, policy)
+            yield job, fly_job(job, config, policy, progress)
         return
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(
         config.workers, context, initializer=_init_worker, initargs=(config.model_path,)
     ) as pool:
-        futures = {pool.submit(_fly_in_worker, job, config): job for job in jobs}
+        futures = {pool.submit(_fly_in_worker, job, config, progress): job for job in jobs}
         for future, job in futures.items():
             yield job, future.result()
 
 
 def run_suite(
-    config: SuiteConfig, on_run: Callable[[RunRecord, int, int], None] | None = None
+    config: SuiteConfig,
+    on_run: Callable[[RunRecord, int, int], None] | None = None,
+    progress: bool = False,
 ) -> SuiteResult:
     """Fly every experiment of the suite with both controllers; `on_run(record, done, total)`.
+
+    `progress`: each flight shows its progress (a bar, or plain lines off a terminal).
 
     Raises `companion.errors.ModelError` if the model file is missing or fails verification
     (before any flight).
@@ -137,7 +155,7 @@ def run_suite(
     try:
         jobs = _jobs(config)
         records: dict[Job, RunRecord] = {}
-        for done, (job, record) in enumerate(_run_jobs(jobs, config, policy), start=1):
+        for done, (job, record) in enumerate(_run_jobs(jobs, config, policy, progress), start=1):
             records[job] = record
             if on_run is not None:
                 on_run(record, done, len(jobs))

@@ -18,6 +18,7 @@ from typing import Any
 from companion.errors import ConfigError
 from sim_harness.dataset.cli import command_line
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
+from sim_harness.sim.out_dir import require_writable_dir
 
 SPLITS = ("train", "val", "test")
 
@@ -103,9 +104,10 @@ def add_learning_commands(sub: Any) -> None:
 def _train(args: argparse.Namespace) -> int:
     from sim_harness.learning.train import TrainConfig, train
 
+    out_dir = require_writable_dir(args.out or Path("runs/train") / args.dataset.name)
     config = TrainConfig(
         dataset=args.dataset,
-        out_dir=args.out or Path("runs/train") / args.dataset.name,
+        out_dir=out_dir,
         max_epochs=args.max_epochs,
         batch_size=args.batch_size,
         lr=args.lr,
@@ -152,7 +154,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     model, _ = load_for_inference(args.model, device)
     split = open_dataset(args.dataset).split(args.split)
-    out = args.out or Path("runs/eval") / f"{args.model.stem}-{args.split}"
+    out = require_writable_dir(args.out or Path("runs/eval") / f"{args.model.stem}-{args.split}")
     report = evaluate_split(
         model, split, out, args.batch_size, device, title=f"{args.model} on {args.split}"
     )
@@ -171,6 +173,9 @@ def _export(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".pt":
         raise ConfigError(f"out: the policy file must end in .pt, got {args.out}")
+    eval_out = args.eval_out or Path("runs/eval") / f"{args.out.stem}-test"
+    require_writable_dir(args.out.parent)
+    require_writable_dir(eval_out, "eval-out")
     model, state = load_eager_model(args.checkpoint)
     dataset = open_dataset(args.dataset)
     if state["dataset"]["id"] != dataset.id:
@@ -182,7 +187,6 @@ def _export(args: argparse.Namespace) -> int:
     last = load_checkpoint(run_dir / LAST_NAME) if (run_dir / LAST_NAME).exists() else state
     scripted = to_torchscript(model)
     test = dataset.split("test")
-    eval_out = args.eval_out or Path("runs/eval") / f"{args.out.stem}-test"
     report = evaluate_split(scripted, test, eval_out, title=f"{args.out.name} on test")
     training = {
         "command": state["command"],
@@ -218,6 +222,7 @@ def _gradcam(args: argparse.Namespace) -> int:
 
     model, _ = load_eager_model(args.model)
     split = open_dataset(args.dataset).split(args.split)
+    require_writable_dir(args.out)
     bad = [i for i in args.samples if i >= split.n_samples]
     if bad:
         raise ConfigError(

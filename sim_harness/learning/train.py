@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from sim_harness.learning.batches import (
     SplitArrays,
@@ -54,6 +53,7 @@ from sim_harness.learning.checkpoint import (
 from sim_harness.learning.evaluate import predict
 from sim_harness.learning.model import DroNet, build_model, parameter_groups
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
+from sim_harness.sim.progress import progress_bar
 
 __all__ = ["TrainConfig", "TrainResult", "resolve_device", "train", "train_on"]
 
@@ -92,13 +92,13 @@ def _train_epoch(
     clipped = torch.zeros((), dtype=torch.int64, device=device)
     seen = 0
     start = time.perf_counter()
-    with tqdm(
+    with progress_bar(
         total=sum(len(rows) for rows in batches),
         desc=desc,
+        enabled=progress,
         unit="img",
         unit_scale=True,
         leave=False,
-        disable=not progress,
     ) as bar:
         for step, (images, targets) in enumerate(
             prefetch(load_batch(split, rows, pin) for rows in batches)

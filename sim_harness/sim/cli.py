@@ -10,6 +10,7 @@ from typing import Any
 from companion.errors import ConfigError
 from companion.flocking import FlockingParams
 from sim_harness.sim.controllers import TeacherController
+from sim_harness.sim.out_dir import require_writable_dir
 from sim_harness.sim.plots import save_flight_figures
 from sim_harness.sim.rollout import FlightLog, fly, save_flight, summarize
 from sim_harness.sim.scenarios import SCENARIOS, ScenarioConfig, build_scenario
@@ -66,8 +67,10 @@ def _rates(args: argparse.Namespace) -> SimRates:
 
 def _fly(args: argparse.Namespace) -> int:
     config = _config(args, args.scenario)
+    rates = _rates(args)
     out = args.out or Path("runs") / f"{config.name}-n{config.n_agents}-s{config.seed}"
-    log = _fly_one(config, _rates(args), out, not args.no_progress)
+    require_writable_dir(out)
+    log = _fly_one(config, rates, out, not args.no_progress)
     print(_describe(summarize(log)))
     print(
         f"wrote {out}/ (flight.png, trajectories.png, distances.png, order.png, "
@@ -130,8 +133,16 @@ def _view(args: argparse.Namespace) -> int:
         raise ConfigError(f"step: {args.step} must be >= 0")
     config = dataclasses.replace(config, duration_s=max(args.step, 1) / rates.control_hz)
     scenario = build_scenario(config)
+    require_writable_dir(args.out)
     log = fly(scenario, TeacherController(config.flocking), rates, progress=False)
-    step = min(args.step, log.n_steps - 1)
+    last = log.n_steps - 1
+    if args.step > last:
+        why = "the flock arrived" if log.stop_reason == "arrived" else "the flight ended"
+        raise ConfigError(
+            f"step: {args.step} is past the end of the flight: {why} at step {last} "
+            f"(t = {last / rates.control_hz:.1f} s); the last step available is {last}"
+        )
+    step = args.step
     with World(config.n_agents) as world:
         image = PyBulletRenderer().render(
             world, log.pos_world_enu[step], log.q_world_body[step], [args.agent]

@@ -15,13 +15,26 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
-from matplotlib.patches import Rectangle
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch, Rectangle
 
 from sim_harness.sim.metrics import COLLISION_THRESHOLD_M
 from sim_harness.sim.rollout import FlightLog
 from sim_harness.sim.scenarios import SPAWN_CENTER
 
 GREY = "0.55"
+VIEW_MARGIN_M = 2.0  # top views frame the flock: its trajectories plus this margin, or
+VIEW_MARGIN_FRACTION = 0.1  # this fraction of the larger side, whichever is larger
+# What the figures' marks mean, for the captions of reports that include them.
+TRAJECTORY_KEY = (
+    "Top views: one colour per drone; squares, triangles and circles mark its first, middle and "
+    "last step; the grey square is the spawn area, grey discs the migration points (an arrow at "
+    "the edge points to one outside the view); the second group of opposing goals is dotted"
+)
+BANDS_KEY = (
+    "distance and order panels: the mean over runs as a line (d_max solid, d_min dashed, the "
+    "dotted black line the 1 m collision threshold), the min-max range over runs shaded"
+)
 
 
 def _agent_colours(n: int) -> list[tuple[float, float, float, float]]:
@@ -29,12 +42,64 @@ def _agent_colours(n: int) -> list[tuple[float, float, float, float]]:
     return [cmap(i % cmap.N) for i in range(n)]
 
 
+def _view_box(log: FlightLog) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) east-north corners framing every trajectory and the spawn area, with margin."""
+    side = log.scenario.config.spawn_side
+    centre = np.asarray(SPAWN_CENTER[:2], dtype=np.float64)
+    points = np.concatenate(
+        [log.pos_world_enu[:, :, :2].reshape(-1, 2), [centre - side / 2, centre + side / 2]]
+    )
+    low, high = points.min(axis=0), points.max(axis=0)
+    margin = max(VIEW_MARGIN_M, VIEW_MARGIN_FRACTION * float(np.max(high - low)))
+    return low - margin, high + margin
+
+
+def _goal_at_edge(ax: Axes, goal: np.ndarray, low: np.ndarray, high: np.ndarray) -> None:
+    """An arrow at the edge of the view pointing towards a migration point outside it."""
+    centre, half = (low + high) / 2, (high - low) / 2
+    direction = goal[:2] - centre
+    t = float(np.min(0.97 * half / np.maximum(np.abs(direction), 1e-9)))
+    tip = centre + t * direction
+    unit = direction / np.linalg.norm(direction)
+    # The label sits inside the view, behind the arrow: right of it for a goal to the west, etc.
+    ha = "right" if unit[0] > 0.3 else "left" if unit[0] < -0.3 else "center"
+    va = "top" if unit[1] > 0.3 else "bottom" if unit[1] < -0.3 else "center"
+    ax.annotate(
+        f"goal ({goal[0]:+.0f}, {goal[1]:+.0f}) m",
+        xy=(float(tip[0]), float(tip[1])),
+        xytext=(float(-28 * unit[0]), float(-28 * unit[1])),
+        textcoords="offset points",
+        arrowprops={"arrowstyle": "-|>", "color": GREY, "lw": 1.5},
+        color="0.3",
+        fontsize=7,
+        ha=ha,
+        va=va,
+        zorder=4,
+    )
+
+
+def _trajectory_legend(ax: Axes, two_groups: bool) -> None:
+    dark = "0.3"
+    handles = [
+        Line2D([], [], marker="s", ls="", color=dark, ms=5, label="first step"),
+        Line2D([], [], marker="^", ls="", color=dark, ms=5, label="middle step"),
+        Line2D([], [], marker="o", ls="", color=dark, ms=5, label="last step"),
+        Patch(facecolor=GREY, alpha=0.25, edgecolor=GREY, label="spawn area"),
+        Line2D([], [], marker="o", ls="", color=GREY, alpha=0.6, ms=10, label="migration point"),
+    ]
+    if two_groups:
+        handles.append(Line2D([], [], ls=":", color=dark, label="second group (other goal)"))
+    ax.legend(handles=handles, fontsize=7, loc="best", framealpha=0.8)
+
+
 def draw_trajectories(ax: Axes, log: FlightLog, title: str | None = None) -> None:
-    """Top view (east, north): one colour per agent; square / triangle / circle at the first /
-    middle / last step; spawn area and migration points in grey; the second group dotted."""
+    """Top view (east, north) framing the flock: one colour per agent; square / triangle / circle
+    at the first / middle / last step; spawn area and migration points in grey (an arrow at the
+    edge for a point outside the view); the second group dotted; a legend says so."""
     sc = log.scenario
     pos = log.pos_world_enu
     side = sc.config.spawn_side
+    low, high = _view_box(log)
     ax.add_patch(
         Rectangle(
             (SPAWN_CENTER[0] - side / 2, SPAWN_CENTER[1] - side / 2),
@@ -47,7 +112,10 @@ def draw_trajectories(ax: Axes, log: FlightLog, title: str | None = None) -> Non
         )
     )
     for goal in sc.goals:
-        ax.plot(goal[0], goal[1], "o", ms=14, color=GREY, alpha=0.6, zorder=1)
+        if np.all(goal[:2] >= low) and np.all(goal[:2] <= high):
+            ax.plot(goal[0], goal[1], "o", ms=14, color=GREY, alpha=0.6, zorder=1)
+        else:
+            _goal_at_edge(ax, goal, low, high)
     mid = pos.shape[0] // 2
     for i, colour in enumerate(_agent_colours(sc.n_agents)):
         style = ":" if sc.groups[i] == 1 else "-"
@@ -63,11 +131,15 @@ def draw_trajectories(ax: Axes, log: FlightLog, title: str | None = None) -> Non
                 mew=0.4,
                 zorder=3,
             )
+    ax.update_datalim([(low[0], low[1]), (high[0], high[1])])
+    ax.margins(0)  # the view box has its margin; equal aspect widens one side if needed
     ax.set_aspect("equal", adjustable="datalim")
+    ax.autoscale_view()
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
     ax.grid(alpha=0.3)
     ax.set_title(title or f"{sc.config.name}, {log.controller}: top view")
+    _trajectory_legend(ax, bool(np.any(sc.groups == 1)))
 
 
 def _band(ax: Axes, logs: Sequence[FlightLog], attr: str, colour: str, label: str) -> None:

@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from tqdm import tqdm
 
 from sim_harness.errors import ControllerError
 from sim_harness.sim import metrics
@@ -35,6 +34,7 @@ from sim_harness.sim.controllers import (
     OwnState,
     sense_neighbours,
 )
+from sim_harness.sim.progress import progress_bar
 from sim_harness.sim.render import PyBulletRenderer, Renderer
 from sim_harness.sim.scenarios import Scenario
 from sim_harness.sim.vehicle import VehicleModel, VehicleParams
@@ -110,8 +110,13 @@ def fly(
     progress: bool = False,
     renderer: Renderer | None = None,
     stop_when: Callable[[FloatArray, float], str | None] | None = None,
+    progress_label: str | None = None,
+    progress_lines: bool | None = None,
 ) -> FlightLog:
     """Run one flight; returns its log (use `summarize` for the paper's numbers).
+
+    `progress` shows a bar named `progress_label` (default: scenario / controller); plain lines
+    instead when stderr is not a terminal or `progress_lines` (see `sim_harness.sim.progress`).
 
     `stop_when(positions, t_s)`, checked after every control step, ends the flight early when it
     returns a reason (which becomes the log's `stop_reason`); arrival always ends it.
@@ -136,11 +141,12 @@ def fly(
     started = time.perf_counter()
     with (
         World(n) as world,
-        tqdm(
+        progress_bar(
             total=max_steps,
-            disable=not progress,
+            desc=progress_label or f"{scenario.config.name} / {controller.name}",
+            enabled=progress,
+            lines=progress_lines,
             unit="step",
-            desc=f"{scenario.config.name} / {controller.name}",
             leave=False,
         ) as bar,
     ):
@@ -199,6 +205,7 @@ def fly(
                 if reason is not None:
                     stop_reason = reason
                     break
+        bar.set_postfix_str(stop_reason, refresh=False)  # the closing line says why it ended
         record(np.full((n, 3), np.nan))  # final state: nothing is issued after the run
     wall = time.perf_counter() - started
     pos = np.stack(rows["pos"])

@@ -66,3 +66,30 @@ def test_bad_input_is_one_clear_line_and_exit_2(args, field, tmp_path) -> None:
     assert len(lines) == 1 and lines[0].startswith("swarm-sim: error:")
     assert field in lines[0]
     assert not (tmp_path / "x").exists()  # nothing half-written
+
+
+def _must_not_run(*args, **kwargs):
+    raise AssertionError("the work started before the output folder was checked")
+
+
+@pytest.mark.parametrize(
+    ("args", "work"),
+    [
+        (["fly"], "sim_harness.sim.cli.fly"),
+        (["view", "--step", "3"], "sim_harness.sim.cli.fly"),
+        (["demo"], "sim_harness.experiments.runner.run_suite"),
+        (["experiments", "--suite", "bar"], "sim_harness.experiments.runner.run_suite"),
+        (["dataset", "generate", "--preset", "smoke"], "sim_harness.dataset.cli.generate"),
+        (["dataset", "aggregate", "--runs", "10"], "sim_harness.experiments.cli.aggregate"),
+        (["dataset", "merge", "data/a", "data/b"], "sim_harness.dataset.cli.merge"),
+        (["train", "--dataset", "data/quick-s0"], "sim_harness.learning.train.train"),
+    ],
+)
+def test_an_unwritable_output_folder_is_refused_before_the_work(
+    args, work, monkeypatch, capsys
+) -> None:
+    monkeypatch.setattr(work, _must_not_run)
+    assert main([*args, "--out", "/proc/forbidden"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("swarm-sim: error: out: cannot write to the folder /proc/forbidden (")
+    assert err.endswith("); choose a writable folder") and "\n" not in err

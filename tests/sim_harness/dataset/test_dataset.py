@@ -256,3 +256,41 @@ def test_inspect_prints_counts_and_writes_figures(smoke_dataset, tmp_path, capsy
     assert "train" in text and "dispersion" in text and "pixel mean" in text
     assert (tmp_path / "targets_hist.png").stat().st_size > 10_000
     assert (tmp_path / "samples.png").stat().st_size > 10_000
+
+
+def test_inspect_writes_nothing_into_the_dataset(smoke_dataset, tmp_path, monkeypatch) -> None:
+    from sim_harness.cli import main
+
+    def files() -> list[Path]:
+        return sorted(p.relative_to(smoke_dataset) for p in smoke_dataset.rglob("*"))
+
+    before = files()
+    monkeypatch.chdir(tmp_path)
+    assert main(["dataset", "inspect", str(smoke_dataset)]) == 0
+    assert files() == before  # no image cache, no figures
+    out = tmp_path / "runs" / "inspect" / smoke_dataset.name  # the default
+    assert (out / "samples.png").stat().st_size > 10_000
+    assert main(["dataset", "inspect", str(smoke_dataset), "--out", str(smoke_dataset / "f")]) == 2
+    assert files() == before
+
+
+def test_the_progress_bar_ends_on_the_samples_written_past_the_target(
+    smoke_dataset, smoke_spec, tmp_path, capsys
+) -> None:
+    # The runs of the smoke dataset but the last of each split: generation makes those again.
+    root = tmp_path / "resumed"
+    (root / "runs").mkdir(parents=True)
+    (root / "spec.json").write_bytes((smoke_dataset / "spec.json").read_bytes())
+    manifest = json.loads((smoke_dataset / "manifest.json").read_text())
+    for split in SPLITS:
+        (root / "runs" / split).mkdir()
+        for entry in manifest["splits"][split]["runs"][:-1]:
+            src = run_path(smoke_dataset, split, entry["run_index"])
+            os.link(src, run_path(root, split, entry["run_index"]))
+    dataset = generate(root, smoke_spec, workers=1, progress=True, command="pytest")
+    err = capsys.readouterr().err  # not a terminal: plain lines
+    for split in SPLITS:
+        written = dataset.manifest["counts"][split]
+        assert written > smoke_spec.target(split)  # a split ends with a whole run
+        last = [line for line in err.splitlines() if line.startswith(f"{split:5s}:")][-1]
+        assert f" 100% {written}/{written} " in last, last

@@ -4,11 +4,13 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import matplotlib.image as mpimg
 import pytest
 
 from sim_harness.cli import main
+from sim_harness.experiments.report import _model_lines
 from sim_harness.experiments.runner import RunRecord, SuiteResult
 from sim_harness.experiments.stats import ARRIVAL_RATIO_BAR, bar_checks, table_row
 from sim_harness.experiments.suites import SuiteConfig
@@ -38,7 +40,8 @@ def test_report_has_the_bar_figures_and_a_table_per_experiment_and_controller(
 ) -> None:
     text = (paper_suite_dir / "report.md").read_text()
     assert text.startswith("# Suite `paper`")
-    assert "## The bar: NOT met" in text  # 0.4 s flights cannot arrive
+    assert "## The bar (paper suite checks, 2 seeds): NOT met" in text  # 0.4 s: no arrival
+    assert "Checked on these 2-seed flights only. The bar itself is judged on 10" in text
     for heading in (
         "## Common goal (N = 9, v_max = 2 m/s)",
         "## Opposing goals (5 vs 4 agents)",
@@ -50,6 +53,10 @@ def test_report_has_the_bar_figures_and_a_table_per_experiment_and_controller(
     ):
         assert heading in text, heading
     assert "![The paper's figure" in text and "(paper_figure.png)" in text
+    caption = text.split("(paper_figure.png)")[1].split("\n\n")[1]
+    for mark in ("squares, triangles and circles", "spawn area", "migration points", "dotted"):
+        assert mark in caption, mark
+    assert "min-max range over runs shaded" in caption
     # Each per-run table lists the seeds with that run's own d_min.
     section = text.split("### Opposing goals (5 vs 4 agents): CNN, per run")[1].split("##")[0]
     for s in summaries(paper_suite_dir, "opposing", "cnn"):
@@ -182,10 +189,17 @@ def test_demo_flies_both_controllers_and_prints_where_the_report_is(
     out = tmp_path / "demo"
     args = ["demo", "--model", str(untrained_policy_path), "--out", str(out), "--duration", "0.3"]
     assert main(args) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
     assert f"report: {out / 'report.md'}" in printed
     for name in ("common / teacher / seed 1000", "common / CNN / seed 1000", "opposing / CNN"):
         assert name in printed
+        # Each flight shows its progress while it flies: plain lines here (not a terminal).
+        progress = [ln for ln in captured.err.splitlines() if ln.startswith(name)]
+        assert progress and ": 100% 3/3 [" in progress[-1], name
+    assert "\r" not in captured.err
+    assert "bar (demo checks, 1 seed): FAIL: common goal: every run arrives" in printed
+    assert "## The bar (demo checks, 1 seed): NOT met" in (out / "report.md").read_text()
     data = json.loads((out / "results.json").read_text())
     assert data["seeds"] == [1000]  # the demo's default: one seed
     assert (out / "paper_figure.png").stat().st_size > 0
@@ -219,3 +233,27 @@ def test_saliency_explains_what_the_policy_file_predicts(untrained_policy_path, 
     module = torch.jit.load(str(untrained_policy_path))
     save_model(module, base_metadata(), bare)
     assert saliency(bare, image) is None
+
+
+def _model_text(metadata) -> str:
+    config = SuiteConfig(model_path=Path("/models/m.pt"))
+    return "\n".join(_model_lines(SuiteResult(config, [], "0" * 64, metadata)))
+
+
+def test_model_lines_print_counts_as_numbers_per_split_and_the_whole_training_chain() -> None:
+    counts = {"test": 8037, "train": 423693, "val": 8622}  # as JSON with sorted keys has them
+    chain = ["swarm-sim train --dataset data/quick-s0", "swarm-sim train --init-from m1.pt"]
+    text = _model_text(
+        {"dataset": {"id": "abc", "counts": counts}, "training": {"chain": chain, "command": "x"}}
+    )
+    assert "dataset `abc` (train 423,693 / val 8,622 / test 8,037 samples)" in text
+    assert "{" not in text
+    assert "- Training commands, first to last:" in text
+    assert f"  1. `{chain[0]}`" in text and f"  2. `{chain[1]}`" in text
+
+
+def test_model_lines_say_when_only_the_last_training_command_is_recorded() -> None:
+    training = {"command": "swarm-sim train --init-from models/m.pt", "config": {"init_from": "m"}}
+    text = _model_text({"training": training})
+    assert "only this last step" in text and "a fine-tune of `m`" in text
+    assert "`swarm-sim train --init-from models/m.pt`" in text
