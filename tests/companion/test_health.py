@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -195,3 +197,45 @@ def test_invariants_over_random_ticks(ticks: list[tuple]) -> None:
             assert decision.state is seen_final and decision.action is Action.WAIT
         if decision.state.final:
             seen_final = decision.state
+
+
+# --- boundaries: exactly at each limit and one float step either side ------------------------
+# Binary-exact values (0.25, 2.0, 100.0, 99.75): `now - then` is computed without rounding, so
+# "exactly at the limit" is exact, and math.nextafter is the smallest step either side.
+EXACT = HealthConfig(stale_after_s=0.25, failsafe_after_s=2.0)
+AT_LIMIT_S = 100.0 - EXACT.stale_after_s  # an image received exactly stale_after_s before 100 s
+
+
+@pytest.mark.parametrize(
+    ("output_time_s", "fresh"),
+    [
+        (math.nextafter(AT_LIMIT_S, math.inf), True),  # one step younger than the limit
+        (AT_LIMIT_S, True),  # exactly stale_after_s old: the limit is inclusive
+        (math.nextafter(AT_LIMIT_S, -math.inf), False),  # one step older: stale
+    ],
+)
+def test_freshness_limit_is_inclusive_to_the_last_step(output_time_s: float, fresh: bool) -> None:
+    assert EXACT.stale_after_s == (100.0 - AT_LIMIT_S)  # the arithmetic really is exact
+    monitor = HealthMonitor(EXACT, start_s=99.0)
+    monitor.step(HealthInputs(99.5, 99.45, True, offboard=ACTIVE))
+    assert monitor.state is HealthState.ACTIVE
+    decision = monitor.step(HealthInputs(100.0, output_time_s, True, offboard=ACTIVE))
+    assert decision.healthy is fresh
+    expected = (HealthState.ACTIVE, Action.FLY) if fresh else (HealthState.HOVER, Action.HOVER)
+    assert (decision.state, decision.action) == expected
+
+
+@pytest.mark.parametrize(
+    ("now_s", "state"),
+    [
+        (math.nextafter(3.0, -math.inf), HealthState.HOVER),  # one step short of 2 s of hover
+        (3.0, HealthState.HOVER),  # exactly failsafe_after_s: not yet (the rule is "longer")
+        (math.nextafter(3.0, math.inf), HealthState.FAILSAFE),  # one step longer
+    ],
+)
+def test_failsafe_comes_one_step_after_failsafe_after_s(now_s: float, state: HealthState) -> None:
+    monitor = HealthMonitor(EXACT, start_s=0.0)
+    monitor.step(HealthInputs(0.5, 0.45, True, offboard=ACTIVE))  # ACTIVE
+    monitor.step(HealthInputs(1.0, 0.5, True, offboard=ACTIVE))  # stale: hover from t = 1
+    assert monitor.hover_since_s == 1.0 and EXACT.failsafe_after_s == (3.0 - 1.0)
+    assert monitor.step(HealthInputs(now_s, 0.5, True, offboard=ACTIVE)).state is state

@@ -78,3 +78,44 @@ def test_pose_enu_yaw_agrees_with_the_frame_conventions(seed: int) -> None:
     history = AttitudeHistory()
     history.add_ned_frd(0.0, q_ned_frd)
     np.testing.assert_allclose(history.at(0.0, 0.1), q_enu_flu, atol=1e-12)
+
+
+# --- boundaries: exactly at each limit and one float step either side ------------------------
+# 10.5 - 10.0 == 0.5 exactly; math.nextafter moves the sample time by the smallest step there is.
+MAX_AGE_S = 0.5
+
+
+@pytest.mark.parametrize(
+    ("stamp_s", "fresh"),
+    [
+        (math.nextafter(10.0, math.inf), True),  # one step younger than max_age_s
+        (10.0, True),  # exactly max_age_s old: the limit is inclusive
+        (math.nextafter(10.0, -math.inf), False),  # one step older: NaN (a hover)
+    ],
+)
+def test_pose_enu_age_limit_to_the_last_step(stamp_s: float, fresh: bool) -> None:
+    now_s = 10.0 + MAX_AGE_S
+    assert now_s - 10.0 == MAX_AGE_S  # the arithmetic really is exact
+    telemetry = AutopilotTelemetry(
+        position_ned_m=Stamped(np.array([1.0, 2.0, -5.0]), stamp_s),
+        q_ned_frd_wxyz=Stamped(q_ned_yaw(math.pi / 2), stamp_s),
+    )
+    pos, yaw = pose_enu(telemetry, now_s=now_s, max_age_s=MAX_AGE_S)
+    assert bool(np.all(np.isfinite(pos))) is fresh  # position and attitude judged alike
+    assert math.isfinite(yaw) is fresh
+
+
+@pytest.mark.parametrize(
+    ("t_s", "found"),
+    [
+        (math.nextafter(10.5, -math.inf), True),  # one step inside max_gap_s of the sample
+        (10.5, True),  # exactly max_gap_s away: the limit is inclusive
+        (math.nextafter(10.5, math.inf), False),  # one step further: no attitude
+        (9.5, True),  # the same on the other side
+        (math.nextafter(9.5, -math.inf), False),
+    ],
+)
+def test_attitude_gap_limit_to_the_last_step(t_s: float, found: bool) -> None:
+    history = AttitudeHistory()
+    history.add_ned_frd(10.0, q_ned_yaw(0.0))
+    assert (history.at(t_s, MAX_AGE_S) is not None) is found

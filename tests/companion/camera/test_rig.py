@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -165,3 +167,48 @@ def test_capture_clock_maps_camera_time_to_host_time() -> None:
     assert mapped[3] == pytest.approx(50.305, abs=1e-3)
     assert all(m <= 50.0 + k * 0.1 + d for k, (m, d) in enumerate(zip(mapped, delays, strict=True)))
     assert clock.to_host(0, 80.0) == 80.0  # camera clock went back (reboot): starts over
+
+
+# --- boundaries: exactly at each limit and one float step either side ------------------------
+# NOW_S - 0.25 and NOW_S - 0.125 are exact in binary, so the age (or spread) is exactly the limit;
+# math.nextafter moves the receive time by the smallest step there is.
+AGE_LIMIT_S, SKEW_LIMIT_S = 0.25, 0.125
+
+
+@pytest.mark.parametrize(
+    ("receive_s", "fresh"),
+    [
+        (math.nextafter(NOW_S - AGE_LIMIT_S, math.inf), True),  # one step younger
+        (NOW_S - AGE_LIMIT_S, True),  # exactly max_age_s old: the limit is inclusive
+        (math.nextafter(NOW_S - AGE_LIMIT_S, -math.inf), False),  # one step older: stale
+    ],
+)
+def test_age_limit_to_the_last_step(
+    slots: dict[str, LatestSlot], receive_s: float, fresh: bool
+) -> None:
+    assert NOW_S - (NOW_S - AGE_LIMIT_S) == AGE_LIMIT_S  # the arithmetic really is exact
+    slots["up"].publish(frame("up", receive_s))
+    result = Rig(make_config(max_age_s=AGE_LIMIT_S, max_skew_s=0.5), slots).snapshot(NOW_S)
+    if fresh:
+        assert isinstance(result, RigImage)
+    else:
+        assert not_ready(result).problems("up") == (FaceProblem.STALE,)
+
+
+@pytest.mark.parametrize(
+    ("receive_s", "within"),
+    [
+        (math.nextafter(NOW_S - SKEW_LIMIT_S, math.inf), True),  # one step less spread
+        (NOW_S - SKEW_LIMIT_S, True),  # exactly max_skew_s behind the newest: inclusive
+        (math.nextafter(NOW_S - SKEW_LIMIT_S, -math.inf), False),  # one step more: skewed
+    ],
+)
+def test_skew_limit_to_the_last_step(
+    slots: dict[str, LatestSlot], receive_s: float, within: bool
+) -> None:
+    slots["right"].publish(frame("right", receive_s))  # the others were received at NOW_S
+    result = Rig(make_config(max_skew_s=SKEW_LIMIT_S), slots).snapshot(NOW_S)
+    if within:
+        assert isinstance(result, RigImage)
+    else:
+        assert not_ready(result).problems("right") == (FaceProblem.SKEWED,)
