@@ -169,7 +169,12 @@ def _export(args: argparse.Namespace) -> int:
     from sim_harness.dataset.store import open_dataset
     from sim_harness.learning.checkpoint import LAST_NAME, CheckpointError, load_checkpoint
     from sim_harness.learning.evaluate import evaluate_split
-    from sim_harness.learning.export import export_policy, load_eager_model, to_torchscript
+    from sim_harness.learning.export import (
+        export_policy,
+        load_eager_model,
+        to_torchscript,
+        training_chain,
+    )
 
     if args.out.suffix != ".pt":
         raise ConfigError(f"out: the policy file must end in .pt, got {args.out}")
@@ -196,6 +201,7 @@ def _export(args: argparse.Namespace) -> int:
         "initial_val_mse": state["initial_val_loss"],
         "wall_time_s": last["wall_time_s"],
         "config": state["config"],
+        **training_chain(state["command"], state["config"].get("init_from")),
     }
     result = export_policy(
         model,

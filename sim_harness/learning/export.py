@@ -20,6 +20,7 @@ the policy's metadata, so it is verified through the policy file's own hash.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import json
@@ -31,9 +32,9 @@ from typing import Any
 import torch
 
 from companion.camera.layout import camera_spec
-from companion.errors import ModelError
+from companion.errors import CompanionError, ModelError
 from companion.frames import BODY_FRAME, WORLD_FRAME
-from companion.model_file import base_metadata, load_model, save_model
+from companion.model_file import base_metadata, load_model, save_model, sidecar_path
 from sim_harness.learning.checkpoint import load_checkpoint, model_from_checkpoint
 from sim_harness.learning.evaluate import PolicyModule
 from sim_harness.learning.inference_graph import InferenceDroNet
@@ -180,6 +181,37 @@ def export_policy(
     metadata["export_check"] = {"images": int(check_images_u8.shape[0]), "max_abs_diff_mps": diff}
     digest = save_model(scripted, metadata, path)
     return ExportResult(path, digest, weights, diff, metadata)
+
+
+def training_chain(command: str, init_from: str | None, depth: int = 0) -> dict[str, Any]:
+    """Every training command that led to a model, first to last, for its metadata.
+
+    `{"chain": [...], "chain_complete": bool}`. A fine-tune (`init_from`) inherits the chain of
+    the policy file or checkpoint it started from; the chain is complete when its first command
+    started from scratch, incomplete when an ancestor is missing or recorded no chain of its own.
+    """
+    if not init_from:
+        return {"chain": [command], "chain_complete": True}
+    inherited: dict[str, Any] = {"chain": [], "chain_complete": False}
+    # An unreadable ancestor, or a history deeper than 20 (a cycle): incomplete from there on.
+    with contextlib.suppress(OSError, ValueError, KeyError, TypeError, CompanionError):
+        if depth < 20:
+            inherited = _recorded_chain(Path(init_from), depth)
+    return {"chain": [*inherited["chain"], command], "chain_complete": inherited["chain_complete"]}
+
+
+def _recorded_chain(parent: Path, depth: int) -> dict[str, Any]:
+    """The chain that produced `parent`, a checkpoint or a policy file (its sidecar)."""
+    if is_checkpoint(parent):
+        state = load_checkpoint(parent)
+        config = state.get("config") or {}
+        return training_chain(state["command"], config.get("init_from"), depth + 1)
+    training = json.loads(sidecar_path(parent).read_text())["metadata"]["training"]
+    if isinstance(training.get("chain"), list):
+        return {"chain": training["chain"], "chain_complete": bool(training["chain_complete"])}
+    config = training.get("config")
+    started_fresh = isinstance(config, dict) and "init_from" in config and not config["init_from"]
+    return {"chain": [training["command"]], "chain_complete": started_fresh}
 
 
 def is_checkpoint(path: Path) -> bool:

@@ -16,7 +16,12 @@ from companion.model_file import enable_graph_fusion, load_model, sidecar_path
 from companion.policy import Policy, PolicyConfig
 from sim_harness.cli import main
 from sim_harness.dataset.store import open_dataset
-from sim_harness.learning.export import export_policy, load_eager_model, weights_path_for
+from sim_harness.learning.export import (
+    export_policy,
+    load_eager_model,
+    training_chain,
+    weights_path_for,
+)
 from sim_harness.learning.model import DroNet, build_model, count_parameters
 from sim_harness.learning.train import TrainConfig, train
 
@@ -216,5 +221,28 @@ def test_swarm_sim_export_from_a_training_run(smoke_dataset, tmp_path, capsys) -
     assert metadata["test_metrics"]["metrics"] == report["metrics"]
     assert metadata["test_metrics"]["split"] == "test"
     assert metadata["training"]["epochs_run"] == 1
+    assert metadata["training"]["chain"] == [config.command]  # trained from scratch: all of it
+    assert metadata["training"]["chain_complete"] is True
     assert metadata["export_check"]["max_abs_diff_mps"] <= 1e-5
     assert weights_path_for(out).exists()
+
+
+def _sidecar(path, training) -> str:
+    path.with_suffix(".json").write_text(json.dumps({"metadata": {"training": training}}))
+    return str(path)
+
+
+def test_a_fine_tune_records_the_whole_chain_of_training_commands(tmp_path) -> None:
+    base = _sidecar(tmp_path / "base.pt", {"command": "train A", "config": {"init_from": None}})
+    first = training_chain("train B --init-from base.pt", base)
+    assert first == {"chain": ["train A", "train B --init-from base.pt"], "chain_complete": True}
+    tuned = _sidecar(tmp_path / "tuned.pt", {"command": "train B", **first})
+    assert training_chain("train C", tuned)["chain"] == [*first["chain"], "train C"]
+    # An ancestor that recorded only its own (fine-tuning) command, or none that can be read.
+    older = _sidecar(tmp_path / "old.pt", {"command": "train X", "config": {"init_from": "m.pt"}})
+    assert training_chain("train Y", older) == {
+        "chain": ["train X", "train Y"],
+        "chain_complete": False,
+    }
+    missing = training_chain("train Z", str(tmp_path / "gone.pt"))
+    assert missing == {"chain": ["train Z"], "chain_complete": False}
