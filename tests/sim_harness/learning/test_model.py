@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from companion.camera.layout import IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX
 from companion.errors import ConfigError
 from sim_harness.learning.model import (
     DroNet,
@@ -65,10 +66,45 @@ def test_feature_maps_follow_dronet_and_the_gradcam_layer_is_4x24(model) -> None
     assert model.gradcam_layer.stride == (2, 2) and model.gradcam_layer.kernel_size == (3, 3)
 
 
+def conv_parameters(kernel: int, c_in: int, c_out: int) -> int:
+    return kernel * kernel * c_in * c_out + c_out  # weights and biases
+
+
+def block_parameters(c_in: int, c_out: int) -> int:
+    """BN-conv3x3/2, BN-conv3x3/1 and the 1x1 shortcut (a batch norm has a scale and a shift)."""
+    return (
+        2 * c_in
+        + conv_parameters(3, c_in, c_out)
+        + 2 * c_out
+        + conv_parameters(3, c_out, c_out)
+        + conv_parameters(1, c_in, c_out)
+    )
+
+
+def feature_size(n: int, kernel: int, stride: int, padding: int) -> int:
+    return (n + 2 * padding - kernel) // stride + 1
+
+
 def test_about_318k_parameters(model) -> None:
+    """Counted from the architecture in the module docstring, not copied from the model."""
+    rows, cols = IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX
+    for kernel, stride, padding in [(5, 2, 2), (3, 2, 0)] + [(3, 2, 1)] * 3:  # conv1, pool, blocks
+        rows, cols = (
+            feature_size(rows, kernel, stride, padding),
+            feature_size(cols, kernel, stride, padding),
+        )
+    expected = (
+        conv_parameters(5, 1, 32)
+        + block_parameters(32, 32)
+        + block_parameters(32, 64)
+        + block_parameters(64, 128)
+        + 2 * 128  # bn_out
+        + 128 * rows * cols * 3
+        + 3  # the linear head
+    )
     n = count_parameters(model)
-    assert n == 317_859
-    assert abs(n - 318_000) / 318_000 < 0.01
+    assert n == expected
+    assert abs(n - 318_000) / 318_000 < 0.01  # DroNet-style ResNet-8 on 1x64x384: ~318k
 
 
 def test_standardization_is_inside_and_travels_with_the_weights(model) -> None:
@@ -90,6 +126,16 @@ def test_channels_last_on_cpu(model) -> None:
     assert model.standardize(example_input(2)).is_contiguous(memory_format=torch.channels_last)
 
 
+def truncated_normal_std(a: float) -> float:
+    """The std of a unit normal truncated to [-a, a]: sqrt(1 - 2 a phi(a) / (2 Phi(a) - 1))."""
+    pdf = math.exp(-a * a / 2.0) / math.sqrt(2.0 * math.pi)
+    mass = math.erf(a / math.sqrt(2.0))  # 2 Phi(a) - 1
+    return math.sqrt(1.0 - 2.0 * a * pdf / mass)
+
+
+TRUNCATED_STD = truncated_normal_std(2.0)  # He's truncated normal is cut at two sigma
+
+
 def test_he_truncated_normal_weights_zero_biases_identity_norms() -> None:
     torch.manual_seed(1)
     model = build_model(pixel_mean=128.0, pixel_std=64.0)
@@ -98,7 +144,7 @@ def test_he_truncated_normal_weights_zero_biases_identity_norms() -> None:
             continue
         fan_in = weight[0].numel()
         target_std = math.sqrt(2.0 / fan_in)
-        bound = 2.0 * target_std / 0.8796256610342398
+        bound = 2.0 * target_std / TRUNCATED_STD
         assert weight.abs().max().item() <= bound + 1e-6, name  # truncated at 2 sigma
         if weight.numel() > 10_000:
             assert weight.std().item() == pytest.approx(target_std, rel=0.03), name
