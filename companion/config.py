@@ -68,6 +68,9 @@ class DaemonConfig:
     """The `[daemon]` section. Times in seconds of the monotonic clock.
 
     - `rate_hz`: control loop rate; one setpoint per tick (PX4 needs > 2 Hz, cameras run at 10).
+    - `tick_on_frames`: a tick starts as soon as all six cameras delivered a new frame, so each
+      decision acts on the newest image; `rate_hz` stays the floor (a tick at the latest one
+      period after the previous). False: ticks on the fixed `rate_hz` grid only.
     - `stale_hover_after_s`: the command's source image (its oldest tile) older than this, or no
       valid policy output: hover (zero velocity, yaw held).
     - `failsafe_after_s`: hovering longer than this: the autopilot's failsafe
@@ -85,6 +88,7 @@ class DaemonConfig:
     """
 
     rate_hz: float = 10.0
+    tick_on_frames: bool = True
     stale_hover_after_s: float = 0.3
     failsafe_after_s: float = 3.0
     inference_budget_s: float | None = None
@@ -99,6 +103,7 @@ class DaemonConfig:
     def __post_init__(self) -> None:
         s = "daemon"
         require_range(f"{s}.rate_hz", self.rate_hz, 10.0, 100.0)
+        require_bool(f"{s}.tick_on_frames", self.tick_on_frames)
         require_range(
             f"{s}.stale_hover_after_s", self.stale_hover_after_s, 0.0, 10.0, low_inclusive=False
         )

@@ -6,7 +6,10 @@ One asyncio program (`Daemon.run`), tasks under a TaskGroup:
 - the Zenoh telemetry publisher (5 Hz, latest values only);
 - an attitude sampler (50 Hz) that keeps the autopilot's recent attitudes, so each policy output
   is rotated with the attitude at its image's capture time;
-- the control loop: a fixed rate on the monotonic clock (deadlines on a grid `t0 + k * period`,
+- the control loop: a tick starts as soon as all six cameras delivered a new frame, so each
+  decision acts on the newest image (image age: the last tile's transfer, not up to a period of
+  waiting), and at the latest one period after the previous tick, so the setpoint stream never
+  falls below `rate_hz` (`[daemon] tick_on_frames = false`: a fixed grid `t0 + k * period`,
   late ticks skipped, never drifting). One tick:
 
   1. rig snapshot; if all six faces are fresh and it is a new image, start the inference (on the
@@ -39,6 +42,7 @@ from typing import Any, TypeVar
 from companion import daemon_reports as reports
 from companion import frames
 from companion.autopilot_types import Autopilot
+from companion.camera.fresh_set import FreshSetWaiter
 from companion.camera.rig import Rig, RigImage, RigSnapshot
 from companion.camera.serial_link import SerialCameraLink, links_from_config, run_links
 from companion.camera.slot import FrameSource
@@ -131,6 +135,7 @@ class Daemon:
         self._last_ok = False
         self._last_reason = "no policy output yet"
         self._last_seqs: tuple[int, ...] | None = None
+        self._last_control_s: float | None = None  # the law's filter runs on real tick spacing
         self.ticks = 0
         self.skipped_ticks = 0
 
@@ -253,9 +258,27 @@ class Daemon:
     # -- the loop --------------------------------------------------------------------------
 
     async def _loop(self) -> None:
-        period_s = self.config.daemon.period_s
+        d = self.config.daemon
+        period_s = d.period_s
+        log.info(
+            "control loop: %s, at least %g Hz",
+            "ticks on each fresh six-frame set" if d.tick_on_frames else "fixed rate",
+            d.rate_hz,
+        )
+        if not d.tick_on_frames:
+            await self._fixed_rate_loop(period_s)
+            return
+        waiter = FreshSetWaiter(self._rig, self._stop, self._clock)
+        deadline_s = self._clock()
+        while not self._stop.is_set():
+            now_s = self._clock()
+            await self._tick(now_s, max(0.0, now_s - deadline_s))
+            deadline_s = now_s + period_s  # the floor: never a period without a tick
+            await waiter.wait(self._last_seqs, deadline_s)
+
+    async def _fixed_rate_loop(self, period_s: float) -> None:
+        """Ticks on the grid `t0 + k * period` (late ticks skipped, never drifting)."""
         next_s = self._clock()
-        log.info("control loop running at %g Hz", self.config.daemon.rate_hz)
         while not self._stop.is_set():
             now_s = self._clock()
             await self._tick(now_s, now_s - next_s)
@@ -338,8 +361,14 @@ class Daemon:
         output, image = self._good
         max_age_s = self.config.daemon.telemetry_max_age_s
         q_capture = self._attitudes.at(image.oldest_capture_time_s, max_age_s)
+        dt_s = None if self._last_control_s is None else now_s - self._last_control_s
+        self._last_control_s = now_s
         control = self._law.step(
-            output.vel_body_flu, NAN4 if q_capture is None else q_capture, pos_enu, yaw_enu
+            output.vel_body_flu,
+            NAN4 if q_capture is None else q_capture,
+            pos_enu,
+            yaw_enu,
+            dt_s=dt_s if dt_s is not None and dt_s > 0.0 else None,
         )
         if not control.ok:
             return control, False, control.reason

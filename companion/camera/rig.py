@@ -127,9 +127,23 @@ class Rig:
         self._sources = {face: sources[face] for face in FACE_NAMES}
 
     @property
+    def sources(self) -> Mapping[str, FrameSource]:
+        """The frame source of each face (FACE_NAMES order)."""
+        return self._sources
+
+    @property
     def config(self) -> CameraRigConfig:
         """The rig configuration (ids, freshness limits)."""
         return self._config
+
+    def has_new_set(self, last_seqs: tuple[int, ...] | None) -> bool:
+        """Whether every face holds a frame other than the one in `last_seqs` (the sequence
+        numbers of the last image used, FACE_NAMES order): a complete fresh set to stitch."""
+        for index, face in enumerate(FACE_NAMES):
+            frame = self._sources[face].latest()
+            if frame is None or (last_seqs is not None and frame.seq == last_seqs[index]):
+                return False
+        return True
 
     def snapshot(self, now_s: float) -> RigSnapshot:
         """A `RigImage` if all six faces pass the rules at host time `now_s`, else `RigNotReady`."""

@@ -6,6 +6,7 @@ look up the drone's attitude at the moment a picture was taken.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -47,10 +48,13 @@ class LatestSlot:
 
     def __init__(self) -> None:
         self._frame: CameraFrame | None = None
+        self.on_publish: Callable[[], None] | None = None  # called after each publish
 
     def publish(self, frame: CameraFrame) -> None:
-        """Replace the held frame."""
+        """Replace the held frame (then tell `on_publish`, if set: the same thread)."""
         self._frame = frame
+        if self.on_publish is not None:
+            self.on_publish()
 
     def latest(self) -> CameraFrame | None:
         """The most recent frame, or None if none was published (or after `clear`)."""

@@ -12,6 +12,7 @@ daemon output and MCAP flight log.
 from __future__ import annotations
 
 import argparse
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +44,31 @@ def add_hil_commands(sub: Any) -> None:
         action="store_true",
         help="also fly the in-process CNN controller on the same seed and model",
     )
+    p.add_argument(
+        "--daemon-set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a key of every drone's companion.toml (TOML value), e.g. "
+        "daemon.tick_on_frames=false; repeatable",
+    )
     p.set_defaults(handler=_hil)
+
+
+def daemon_overrides(items: list[str]) -> dict[str, dict[str, Any]]:
+    """`SECTION.KEY=VALUE` items (VALUE in TOML syntax) as {section: {key: value}}."""
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot or not section or not name:
+            raise ConfigError(f"daemon-set: {item!r} is not SECTION.KEY=VALUE")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()  # a bare word is a string
+        out.setdefault(section, {})[name] = value
+    return out
 
 
 def _hil(args: argparse.Namespace) -> int:
@@ -69,7 +94,8 @@ def _hil(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"out: cannot create {out}: {exc.strerror}") from exc
-    doc = fly_hil(config, args.model, out, duration, plan, args.compare)
+    overrides = daemon_overrides(args.daemon_set)
+    doc = fly_hil(config, args.model, out, duration, plan, args.compare, overrides)
     s = doc["summary"]
     print(
         f"{'VALID' if doc['valid'] else 'INVALID'}: arrived {s['arrived']}, "
@@ -88,17 +114,19 @@ def fly_hil(
     duration_s: float,
     plan: Any = None,
     compare: bool = False,
+    overrides: dict[str, dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """Fly the HIL swarm (and the in-process CNN if `compare`), write `out`, return hil.json."""
     from sim_harness.hil.results import write_results
-    from sim_harness.hil.swarm import HilSwarm
+    from sim_harness.hil.swarm import HilConfig, HilSwarm
 
     scenario = build_scenario(config)
 
     def say(message: str) -> None:
         print(f"hil: {message}", flush=True)
 
-    run = HilSwarm(scenario, model, out, faults=plan, progress=say).run(duration_s)
+    hil = HilConfig(daemon_overrides=overrides or {})
+    run = HilSwarm(scenario, model, out, hil, faults=plan, progress=say).run(duration_s)
     reference = None
     if compare:
         say("flying the in-process CNN on the same seed")
