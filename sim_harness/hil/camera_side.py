@@ -206,6 +206,10 @@ class CameraSide:
         self.faces_config: list[dict[str, dict[str, str]]] = self._conn.recv()
         self.final: CaptureStats | None = None
 
+    @property
+    def pid(self) -> int | None:
+        return self._process.pid
+
     def call(self, command: str, *args: Any) -> Any:
         self._conn.send((command, args))
         return self._conn.recv()

@@ -168,8 +168,13 @@ class HilSwarm:
         faults: FaultPlan | None = None,
         vehicle_params: VehicleParams | None = None,
         progress: Callable[[str], None] | None = None,
+        on_phase: Callable[[str, HilSwarm], None] | None = None,
     ) -> None:
+        """`on_phase(name, self)` is called at "flight_start" and "flight_end" (daemons still
+        running), e.g. for a benchmark to sample the processes' CPU time."""
         self.scenario = scenario
+        self.on_phase = on_phase or (lambda _name, _swarm: None)
+        self.camera_pid: int | None = None
         self.config = config or HilConfig()
         self.model_path = model_path
         self.progress = progress or (lambda _msg: None)
@@ -222,6 +227,7 @@ class HilSwarm:
                 seed=cfg.seed,
             )
         )
+        self.camera_pid = side.pid
         for setup, state in zip(self.setups, self._states(), strict=True):
             drone = HilDrone(
                 setup,
@@ -273,6 +279,7 @@ class HilSwarm:
                 flight_start = time.monotonic()
                 flight_t0 = [d.px4.now_s() for d in self.drones]
                 faults = FaultRunner(self.plan, self.drones) if self.plan is not None else None
+                self.on_phase("flight_start", self)
                 self.progress(f"all engaged (last after {max(e or 0 for e in engage_s):.1f} s)")
                 steps = math.ceil(duration_s * cfg.rates.control_hz - 1e-9)
                 for step in range(steps + 1):
@@ -293,6 +300,7 @@ class HilSwarm:
                         self.progress(f"t = {step * cfg.rates.control_dt_s:.0f} s")
                 if faults is not None:
                     faults.finish(time.monotonic() - flight_start)
+                self.on_phase("flight_end", self)
             except _Abort as exc:
                 aborted = str(exc)
                 log.error("hil: %s", aborted)
