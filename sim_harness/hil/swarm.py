@@ -377,7 +377,8 @@ class _Clock:
             lat.physics_late += behind > sw.config.late_physics_s
             lat.physics_max_behind_s = max(lat.physics_max_behind_s, behind)
             self.setpoints = np.stack([d.vehicle.velocity_setpoint_enu() for d in sw.drones])
-            sw.vehicle.step(self.setpoints, self.dt_s)
+            yaw_sp = np.array([d.vehicle.yaw_setpoint_enu() for d in sw.drones])
+            sw.vehicle.step(self.setpoints, self.dt_s, yaw_sp)
             s = sw.vehicle.state
             q = sw.vehicle.q_world_body
             self.board.write(s.pos_world_enu, q)

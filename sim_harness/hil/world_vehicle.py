@@ -12,12 +12,13 @@ it was switched on), so its local NED position is the world position minus that 
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.frames import enu_to_ned, ned_to_enu, quat_enu_flu_to_ned_frd
+from companion.frames import enu_to_ned, ned_to_enu, quat_enu_flu_to_ned_frd, yaw_ned_to_enu
 from sim_harness.hil.emulated_vehicle import VehicleStateNed, VelocityCommand
 from sim_harness.hil.px4_messages import Home
 
@@ -81,6 +82,14 @@ class WorldVehicle:
         if vel.shape != (3,) or not np.all(np.isfinite(vel)):
             return np.zeros(3)
         return ned_to_enu(vel)
+
+    def yaw_setpoint_enu(self) -> float:
+        """PX4's yaw setpoint (ENU rad), NaN when none (disarmed, no yaw in the setpoint)."""
+        with self._lock:
+            command = self._command
+        if command is None or command.yaw_ned_rad is None or not math.isfinite(command.yaw_ned_rad):
+            return math.nan
+        return float(yaw_ned_to_enu(command.yaw_ned_rad))
 
     def publish(self, state: VehicleStateNed) -> None:
         """The world loop's latest state of this drone (see `states_ned`)."""

@@ -205,8 +205,14 @@ class VehicleModel:
         out[:, :2] *= scale[:, None]
         return out
 
-    def step(self, vel_sp_world_enu: ArrayLike, dt_s: float) -> None:
-        """Advance all vehicles by `dt_s` towards the (N, 3) world-ENU velocity setpoints."""
+    def step(
+        self, vel_sp_world_enu: ArrayLike, dt_s: float, yaw_sp_rad: ArrayLike | None = None
+    ) -> None:
+        """Advance all vehicles by `dt_s` towards the (N, 3) world-ENU velocity setpoints.
+
+        `yaw_sp_rad` (N,) ENU: heading setpoints (an offboard yaw, as PX4 tracks it); NaN or None:
+        the heading follows the setpoint's direction (held below `yaw_hold_speed_mps`).
+        """
         p, s = self.params, self.state
         sp = np.asarray(vel_sp_world_enu, dtype=np.float64)
         if sp.shape != s.pos_world_enu.shape:
@@ -226,6 +232,9 @@ class VehicleModel:
             s.vel_world_enu[grounded, 2] = np.maximum(s.vel_world_enu[grounded, 2], 0.0)
 
         yaw_target = yaw_from_velocity(sp, s.yaw_rad, p.yaw_hold_speed_mps)
+        if yaw_sp_rad is not None:
+            given = np.asarray(yaw_sp_rad, dtype=np.float64)
+            yaw_target = np.where(np.isfinite(given), given, yaw_target)
         max_turn = math.radians(p.yaw_rate_max_deg_s) * dt_s
         s.yaw_rad = wrap_angle(
             s.yaw_rad + np.clip(wrap_angle(yaw_target - s.yaw_rad), -max_turn, max_turn)

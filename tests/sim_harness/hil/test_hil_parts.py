@@ -95,6 +95,9 @@ def test_world_vehicle_speaks_its_own_px4_frames() -> None:
     vehicle = WorldVehicle(home, state)
     vehicle.step(0.02, VelocityCommand(vel_ned_mps=np.array([1.0, 2.0, -0.5])))
     assert np.allclose(vehicle.velocity_setpoint_enu(), [2.0, 1.0, 0.5])  # ENU of NED (1, 2, -0.5)
+    assert math.isnan(vehicle.yaw_setpoint_enu())  # no yaw in the setpoint: the vehicle's own rule
+    vehicle.step(0.02, VelocityCommand(vel_ned_mps=np.zeros(3), yaw_ned_rad=0.0))
+    assert vehicle.yaw_setpoint_enu() == pytest.approx(math.pi / 2)  # facing north
     vehicle.step(0.02, None)  # disarmed: it falls
     assert vehicle.velocity_setpoint_enu()[2] < 0.0
     vehicle.step(0.02, VelocityCommand(vel_ned_mps=np.array([math.nan, 0.0, 0.0])))

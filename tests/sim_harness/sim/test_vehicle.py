@@ -75,6 +75,16 @@ def test_heading_is_held_when_the_setpoint_is_slow() -> None:
     assert model.state.yaw_rad[0] == pytest.approx(1.0)
 
 
+def test_a_yaw_setpoint_overrides_the_heading_rule_and_nan_falls_back_to_it() -> None:
+    """As PX4 tracks an offboard yaw: drone 0 flies east facing north; drone 1 has no yaw."""
+    params = VehicleParams()
+    model = VehicleModel(params, [[0.0, 0.0, 5.0], [5.0, 0.0, 5.0]], initial_yaw_rad=0.0)
+    for _ in range(round(3.0 / DT)):
+        model.step([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], DT, [math.pi / 2, math.nan])
+    assert model.state.yaw_rad == pytest.approx([math.pi / 2, math.pi / 2], abs=1e-6)
+    assert model.state.vel_world_enu[0, 0] == pytest.approx(1.0, abs=0.05)
+
+
 def test_ground_stops_descent() -> None:
     params = VehicleParams()
     model = VehicleModel(params, [[0.0, 0.0, 1.0]])
