@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
 from sim_harness.hil.camera_side import RemoteCameras
 from sim_harness.hil.px4_messages import Home
+from sim_harness.hil.px4_params import logic_config
 from sim_harness.hil.world_vehicle import WorldVehicle
 from sim_harness.learning.shipped import PROJECT_ROOT
 
@@ -107,6 +108,7 @@ class HilDrone:
                 system_id=setup.system_id,
                 home=home,
                 start_yaw_rad=float(vehicle.state().yaw_ned_rad),
+                px4=logic_config(),  # the offboard-loss rule of the shipped parameter file
             ),
             backend=vehicle,
         )

@@ -23,6 +23,8 @@ from sim_harness.hil.drone import SHIPPED_CONFIG, DroneSetup, HilDrone, toml_tex
 from sim_harness.hil.emulated_vehicle import VelocityCommand
 from sim_harness.hil.faults import KINDS, load_plan, parse_plan
 from sim_harness.hil.plans import PLANS_DIR
+from sim_harness.hil.px4_logic import Px4Mode
+from sim_harness.hil.px4_params import SHIPPED_PARAMS, logic_config, read_params
 from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, WorldVehicle, home_of, states_ned
 
 TIMEOUT_S = 10.0
@@ -165,3 +167,20 @@ def test_fault_plans_validate_and_name_the_field(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read"):
         load_plan(broken, 3)
     assert len(KINDS) == 8
+
+
+def test_emulated_px4_takes_the_offboard_loss_rule_from_the_shipped_parameter_file(
+    tmp_path: Path,
+) -> None:
+    config = logic_config()
+    assert config.offboard_loss_timeout_s == read_params(SHIPPED_PARAMS)["COM_OF_LOSS_T"] == 1.0
+    assert config.offboard_loss_mode is Px4Mode.HOLD  # COM_OBL_RC_ACT 5
+    land = tmp_path / "land.params"
+    land.write_text("# comment\n1\t1\tCOM_OF_LOSS_T\t0.7\t9\n1\t1\tCOM_OBL_RC_ACT\t4\t6\n")
+    assert (logic_config(land).offboard_loss_timeout_s, logic_config(land).offboard_loss_mode) == (
+        0.7,
+        Px4Mode.LAND,
+    )
+    land.write_text("1\t1\tCOM_OF_LOSS_T\tsoon\t9\n")
+    with pytest.raises(ConfigError, match=r"land.params:1: COM_OF_LOSS_T"):
+        logic_config(land)
