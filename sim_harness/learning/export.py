@@ -24,7 +24,6 @@ import contextlib
 import copy
 import hashlib
 import json
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,7 +33,13 @@ import torch
 from companion.camera.layout import camera_spec
 from companion.errors import CompanionError, ModelError
 from companion.frames import BODY_FRAME, WORLD_FRAME
-from companion.model_file import base_metadata, load_model, save_model, sidecar_path
+from companion.model_file import (
+    base_metadata,
+    load_model,
+    save_model,
+    sidecar_path,
+    torchscript_calls,
+)
 from sim_harness.learning.checkpoint import load_checkpoint, model_from_checkpoint
 from sim_harness.learning.evaluate import PolicyModule
 from sim_harness.learning.inference_graph import InferenceDroNet
@@ -71,9 +76,7 @@ def to_torchscript(model: DroNet, graph: str = "inference") -> torch.jit.ScriptM
         raise ValueError(f"graph must be 'inference' or 'eager', not {graph!r}")
     cpu = to_channels_last(copy.deepcopy(model)).eval()
     module: torch.nn.Module = InferenceDroNet(cpu).eval() if graph == "inference" else cpu
-    with torch.no_grad(), warnings.catch_warnings():
-        # TorchScript is the drone's format by design; torch 2.13 flags it as deprecated.
-        warnings.simplefilter("ignore", DeprecationWarning)
+    with torch.no_grad(), torchscript_calls():  # TorchScript is the drone's format, for now
         traced = torch.jit.trace(module, example_input(1))  # type: ignore[no-untyped-call]
         frozen: torch.jit.ScriptModule = torch.jit.freeze(traced)
     return frozen

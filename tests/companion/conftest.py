@@ -28,6 +28,8 @@ def build_module(kind: str, value: Sequence[float] = (1.0, 0.0, 0.0)) -> Any:
     import torch
     from torch import Tensor, nn
 
+    from companion.model_file import torchscript_calls
+
     class Constant(nn.Module):
         def __init__(self, value: Sequence[float]) -> None:
             super().__init__()
@@ -75,7 +77,8 @@ def build_module(kind: str, value: Sequence[float] = (1.0, 0.0, 0.0)) -> Any:
         "raise": Raise,
         "spin": lambda: Spin(SPIN_ITERS_PER_UNIT),
     }
-    return torch.jit.script(modules[kind]().eval())
+    with torchscript_calls():
+        return torch.jit.script(modules[kind]().eval())
 
 
 PolicyFactory = Callable[..., Path]

@@ -12,10 +12,14 @@ import pytest
 import torch
 
 from companion.errors import ConfigError, ModelError
-from companion.model_file import METADATA_NAME, base_metadata, sha256_file, sidecar_path
+from companion.model_file import (
+    METADATA_NAME,
+    base_metadata,
+    sha256_file,
+    sidecar_path,
+    torchscript_calls,
+)
 from companion.policy import Policy, PolicyConfig, PolicyOutput
-
-pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.*` is deprecated:DeprecationWarning")
 
 IMAGE = np.full((64, 384), 51, dtype=np.uint8)  # brightness 0.2
 
@@ -73,11 +77,12 @@ def test_refuses_a_tampered_file(make_policy_file) -> None:
 def test_refuses_metadata_of_another_frame(tmp_path: Path, make_policy_file) -> None:
     # Written by hand (save_model itself refuses such metadata): body FRD output.
     source = make_policy_file("constant")
-    module = torch.jit.load(str(source))
     metadata = base_metadata()
     metadata["output"]["frame"] = "body_frd"
     path = tmp_path / "frd.pt"
-    torch.jit.save(module, str(path), _extra_files={METADATA_NAME: json.dumps(metadata)})
+    with torchscript_calls():
+        module = torch.jit.load(str(source))
+        torch.jit.save(module, str(path), _extra_files={METADATA_NAME: json.dumps(metadata)})
     sidecar_path(path).write_text(json.dumps({"sha256": sha256_file(path), "metadata": metadata}))
     with pytest.raises(ModelError, match="output.frame"):
         load(path)

@@ -12,8 +12,6 @@ from sim_harness.learning.export import to_torchscript
 from sim_harness.learning.inference_graph import FoldedStem, InferenceDroNet
 from sim_harness.learning.model import build_model
 
-pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.*` is deprecated:DeprecationWarning")
-
 
 def _trained_looking_model() -> nn.Module:
     torch.manual_seed(3)
