@@ -475,16 +475,19 @@ def test_sigterm_holds_exits_0_and_leaves_a_readable_log(
             with contextlib.suppress(TimeoutError):
                 received.extend(notify.recv(4096).decode().splitlines())
 
-    def flying_the_policy() -> bool:
-        """OFFBOARD, and the policy's eastward command arrived (not only the zero prestream)."""
-        return px4.mode is Px4Mode.OFFBOARD and any(s.vy_mps > 0.9 for s in px4.setpoints())
+    at_sigterm: list[Any] = []
+
+    def flying_the_policy_now() -> bool:
+        """OFFBOARD, and the latest setpoint is the policy's eastward command (not the zero
+        prestream nor a hover): judged on one snapshot, the one the SIGTERM then follows."""
+        at_sigterm[:] = px4.setpoints()
+        return px4.mode is Px4Mode.OFFBOARD and bool(at_sigterm) and at_sigterm[-1].vy_mps > 0.9
 
     try:
         receive_until(lambda: "READY=1" in received, 60.0, "READY=1")
         ready_at = received.index("READY=1")
-        receive_until(flying_the_policy, GUARD_S, "the policy's setpoints in OFFBOARD")
         receive_until(lambda: received[ready_at:].count("WATCHDOG=1") >= 3, GUARD_S, "WATCHDOG=1")
-        sigterm_count = len(px4.setpoints())
+        receive_until(flying_the_policy_now, GUARD_S, "the policy's setpoints in OFFBOARD")
         child.send_signal(signal.SIGTERM)
         output, _ = child.communicate(timeout=20.0)
         notify.setblocking(False)
@@ -504,7 +507,7 @@ def test_sigterm_holds_exits_0_and_leaves_a_readable_log(
     offboard_end = px4.mode_changes()[-1]
     assert (offboard_end.old, offboard_end.new) == (Px4Mode.OFFBOARD, Px4Mode.HOLD)
     assert offboard_end.reason == "DO_SET_MODE"
-    after_sigterm = px4.setpoints()[sigterm_count:]
+    after_sigterm = px4.setpoints()[len(at_sigterm) :]
     before_hold = [s for s in after_sigterm if s.t_s <= offboard_end.t_s]
     assert before_hold and is_zero(before_hold[-1]), text
     assert all(is_zero(s) for s in after_sigterm if s.t_s > offboard_end.t_s)
