@@ -67,9 +67,10 @@ def test_three_daemons_fly_the_swarm_towards_its_goal(tmp_path: Path) -> None:
                sorted((folder / "flights").glob("*.mcap")))), drone  # fmt: skip
         times = np.asarray(_setpoint_times(folder / "flights"))
         rate = (len(times) - 1) / (times[-1] - times[0])
-        # A fixed-rate loop on the monotonic clock: late ticks are skipped, never bunched, so
-        # the mean rate stays near the configured one even on a loaded machine.
-        assert 0.8 * RATE_HZ <= rate <= 1.05 * RATE_HZ, (drone["drone"], rate, why)
+        # Ticks follow each fresh six-frame set (10 Hz cameras) with one period as the floor; a
+        # set arriving just after a floor tick adds one tick (measured ~10.7 Hz). The floor holds
+        # the rate up on a loaded machine; a runaway loop would show far above 1.5x.
+        assert 0.8 * RATE_HZ <= rate <= 1.5 * RATE_HZ, (drone["drone"], rate, why)
         assert drone["frames_sent"] > 6 * 10 * 20 * 0.8, drone
     assert (tmp_path / "report.md").read_text().startswith("# HIL flight: common, N = 3")
 
