@@ -41,6 +41,8 @@ from sim_harness.hil.px4_logic import (
     Px4Mode,
 )
 from sim_harness.hil.px4_messages import SetpointRecord
+from sim_harness.hil.px4_param_server import ParamServer
+from sim_harness.hil.px4_params import param_table, with_param
 
 LOOPBACK = "127.0.0.1"
 _MAX_WAIT_S = 0.02  # longest the thread sleeps: bounds how long stop() takes
@@ -120,6 +122,7 @@ class AutopilotEmulator:
         self._backend = backend
         self._lock = threading.Lock()
         self._logic = Px4Logic(config.px4, config.start_mode, config.start_armed)
+        self._params = ParamServer(param_table(config.px4), on_change=self._param_changed)
         self._state = backend.state()
         self._setpoints: deque[SetpointRecord] = deque(maxlen=config.log_capacity)
         self._commands: deque[CommandRecord] = deque(maxlen=config.log_capacity)
@@ -368,8 +371,21 @@ class AutopilotEmulator:
                     self._logic.on_setpoint(now, command)
         elif kind in ("COMMAND_LONG", "COMMAND_INT") and self._addressed_to_us(msg):
             self._handle_command(msg, now)
+        elif kind.startswith("PARAM_") and self._addressed_to_us(msg):
+            with self._lock:
+                replies = self._params.handle(self._mav, msg)
+            for reply in replies:
+                self._send(reply)
         elif kind == "TIMESYNC" and msg.tc1 == 0:
             self._send(self._mav.timesync_encode(time.monotonic_ns(), msg.ts1))
+
+    def _param_changed(self, name: str, value: float) -> None:  # called with the lock held
+        self._logic.config = with_param(self._logic.config, name, value)
+
+    def param_values(self) -> dict[str, float]:
+        """The emulated parameter table (name -> value), as PARAM_SET left it."""
+        with self._lock:
+            return self._params.values()
 
     def _handle_command(self, msg: mavlink.MAVLink_message, now: float) -> None:
         command, params, home = int(msg.command), cmds.command_params(msg), self.config.home

@@ -7,7 +7,11 @@ Rules copied from PX4:
 
 - OFFBOARD is refused unless a setpoint arrived within `offboard_entry_window_s`; in OFFBOARD,
   no setpoint for `offboard_loss_timeout_s` switches to `offboard_loss_mode` (COM_OF_LOSS_T,
-  COM_OBL_RC_ACT).
+  COM_OBL_RC_ACT; PX4's default 0 is Position mode).
+- After that failsafe PX4 keeps OFFBOARD as the mode the user asked for: setpoints arriving again
+  put the vehicle back into OFFBOARD by themselves, with no mode request (`offboard_resume`;
+  measured on PX4 SITL: back in OFFBOARD within one heartbeat of the first setpoint, after 8 s in
+  the failsafe). Only a mode change (pilot, ground station, takeoff, land, disarm) cancels that.
 - Disarming is refused in the air unless forced (MAVLink magic 21196).
 - TAKEOFF climbs to the takeoff altitude then switches to HOLD; LAND descends and disarms on
   touchdown; HOLD and the manual modes hold zero velocity.
@@ -93,7 +97,8 @@ class Px4LogicConfig:
 
     offboard_entry_window_s: float = 0.5
     offboard_loss_timeout_s: float = 0.5  # COM_OF_LOSS_T
-    offboard_loss_mode: Px4Mode = Px4Mode.HOLD  # COM_OBL_RC_ACT
+    offboard_loss_mode: Px4Mode = Px4Mode.POSCTL  # COM_OBL_RC_ACT 0 (PX4's default)
+    offboard_resume: bool = True  # setpoints back after the loss failsafe: OFFBOARD again
     takeoff_altitude_m: float = 2.5  # MIS_TAKEOFF_ALT
     takeoff_speed_mps: float = 1.0  # MPC_TKO_SPEED
     land_speed_mps: float = 0.7  # MPC_LAND_SPEED
@@ -131,6 +136,7 @@ class Px4Logic:
         self._setpoint: VelocityCommand | None = None
         self._setpoint_t_s: float | None = None
         self._takeoff_target_m = config.takeoff_altitude_m
+        self.offboard_intended = False  # OFFBOARD left by the loss failsafe, not by a request
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -151,6 +157,7 @@ class Px4Logic:
             return MavResult.DENIED
         if mode in (Px4Mode.TAKEOFF, Px4Mode.LAND) and not self.armed:
             return MavResult.DENIED
+        self.offboard_intended = False
         self._switch(t_s, mode, reason)
         return MavResult.ACCEPTED
 
@@ -161,6 +168,7 @@ class Px4Logic:
         if not arm and self.in_air(state) and not force:
             return MavResult.DENIED
         self.armed = arm
+        self.offboard_intended = False
         return MavResult.ACCEPTED
 
     def takeoff(self, t_s: float, altitude_m: float | None) -> MavResult:
@@ -171,6 +179,7 @@ class Px4Logic:
             self._takeoff_target_m = altitude_m
         else:
             self._takeoff_target_m = self.config.takeoff_altitude_m
+        self.offboard_intended = False
         self._switch(t_s, Px4Mode.TAKEOFF, "takeoff command")
         return MavResult.ACCEPTED
 
@@ -202,6 +211,10 @@ class Px4Logic:
             t_s, cfg.offboard_loss_timeout_s
         ):
             self._switch(t_s, cfg.offboard_loss_mode, "offboard setpoints lost")
+            self.offboard_intended = cfg.offboard_resume
+        elif self.offboard_intended and self.setpoint_fresh(t_s, cfg.offboard_entry_window_s):
+            self.offboard_intended = False
+            self._switch(t_s, Px4Mode.OFFBOARD, "offboard setpoints regained")
         if not self.armed:
             return None
         hold = VelocityCommand(vel_ned_mps=np.zeros(3))

@@ -55,3 +55,25 @@ def logic_config(path: Path = SHIPPED_PARAMS, base: Px4LogicConfig | None = None
             raise ConfigError(f"{path}: COM_OBL_RC_ACT {action} is not emulated")
         config = dataclasses.replace(config, offboard_loss_mode=OFFBOARD_LOSS_ACTIONS[action])
     return config
+
+
+def param_table(config: Px4LogicConfig) -> dict[str, tuple[float, int]]:
+    """PX4's stock parameter table with the offboard-loss rule of `config` (for the emulator)."""
+    from sim_harness.hil.px4_param_server import PX4_STOCK
+
+    action = next(
+        a for a, mode in OFFBOARD_LOSS_ACTIONS.items() if mode is config.offboard_loss_mode
+    )
+    table = dict(PX4_STOCK)
+    table["COM_OF_LOSS_T"] = (config.offboard_loss_timeout_s, PX4_STOCK["COM_OF_LOSS_T"][1])
+    table["COM_OBL_RC_ACT"] = (action, PX4_STOCK["COM_OBL_RC_ACT"][1])
+    return table
+
+
+def with_param(config: Px4LogicConfig, name: str, value: float) -> Px4LogicConfig:
+    """`config` after PARAM_SET `name` = `value` (only the offboard-loss rule is emulated)."""
+    if name == "COM_OF_LOSS_T" and value > 0.0:
+        return dataclasses.replace(config, offboard_loss_timeout_s=value)
+    if name == "COM_OBL_RC_ACT" and int(value) in OFFBOARD_LOSS_ACTIONS:
+        return dataclasses.replace(config, offboard_loss_mode=OFFBOARD_LOSS_ACTIONS[int(value)])
+    return config

@@ -128,7 +128,8 @@ def test_px4_custom_mode_encoding_matches_px4() -> None:
 
 def test_offboard_needs_fresh_setpoints_and_falls_back_to_hold() -> None:
     vehicle = FirstOrderVehicle(pos_ned_m=(0, 0, -5))
-    logic = Px4Logic(Px4LogicConfig(), Px4Mode.POSCTL, armed=True)
+    hold = Px4LogicConfig(offboard_loss_mode=Px4Mode.HOLD)  # COM_OBL_RC_ACT 5, our file
+    logic = Px4Logic(hold, Px4Mode.POSCTL, armed=True)
     assert logic.set_mode(0.0, Px4Mode.OFFBOARD, "test") is MavResult.DENIED
     logic.on_setpoint(1.0, VelocityCommand(np.array([1.0, 0.0, 0.0])))
     assert logic.set_mode(1.6, Px4Mode.OFFBOARD, "test") is MavResult.DENIED  # 0.6 s old
@@ -141,6 +142,33 @@ def test_offboard_needs_fresh_setpoints_and_falls_back_to_hold() -> None:
     assert command is not None
     np.testing.assert_allclose(command.vel_ned_mps, 0.0)
     assert logic.mode_log[-1].reason == "offboard setpoints lost"
+
+
+def test_stock_offboard_loss_is_position_mode_and_setpoints_resume_offboard() -> None:
+    """PX4's defaults (COM_OBL_RC_ACT 0), and what PX4 SITL showed: after the loss failsafe,
+    OFFBOARD stays the intended mode; setpoints coming back resume it with no request. A mode
+    change cancels that; so does the resume itself (a second loss needs a new failsafe)."""
+    state = FirstOrderVehicle(pos_ned_m=(0, 0, -5)).state()
+    logic = Px4Logic(Px4LogicConfig(), Px4Mode.POSCTL, armed=True)
+    forward = VelocityCommand(np.array([1.0, 0.0, 0.0]))
+    logic.on_setpoint(0.0, forward)
+    assert logic.set_mode(0.1, Px4Mode.OFFBOARD, "test") is MavResult.ACCEPTED
+    logic.update(0.6, state)  # 0.6 s without a setpoint: COM_OF_LOSS_T is 0.5 s here
+    assert logic.mode is Px4Mode.POSCTL and logic.offboard_intended
+    logic.update(5.0, state)
+    assert logic.mode is Px4Mode.POSCTL  # no setpoint: stays in the failsafe
+    logic.on_setpoint(9.0, forward)  # e.g. a restarted companion's first setpoint
+    command = logic.update(9.02, state)
+    assert logic.mode is Px4Mode.OFFBOARD and logic.mode_log[-1].reason == (
+        "offboard setpoints regained"
+    )
+    assert command is not None and command.vel_ned_mps[0] == 1.0
+    logic.update(9.6, state)  # lost again
+    assert logic.mode is Px4Mode.POSCTL
+    assert logic.set_mode(9.7, Px4Mode.HOLD, "pilot") is MavResult.ACCEPTED
+    logic.on_setpoint(10.0, forward)
+    logic.update(10.02, state)
+    assert logic.mode is Px4Mode.HOLD and not logic.offboard_intended  # the pilot's choice holds
 
 
 def test_disarm_is_refused_in_the_air_unless_forced() -> None:
@@ -273,7 +301,7 @@ def test_requested_messages_follow_their_ack(wire) -> None:
 
 
 def test_offboard_over_the_wire_refused_then_accepted_then_lost(wire) -> None:
-    emulator, client = wire(hovering=True)
+    emulator, client = wire(hovering=True, px4=Px4LogicConfig(offboard_loss_mode=Px4Mode.HOLD))
     set_mode = mavlink.MAV_CMD_DO_SET_MODE
     flag = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     loss_timeout_s = emulator.config.px4.offboard_loss_timeout_s  # COM_OF_LOSS_T, 0.5 s
