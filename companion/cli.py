@@ -2,6 +2,8 @@
 
 companion run --config FILE            # the daemon (systemd runs this)
 companion check --config FILE          # config, model hash and metadata, devices: ready to fly?
+companion check --autopilot [--config FILE | --url URL] [--params FILE]
+                                       # the live autopilot's parameters against a .params file
 companion log summary FILE             # what a flight log (MCAP) holds
 companion log recover FILE OUT         # rewrite a log cut short by a crash as a complete file
 companion ground launch --hosts H ...  # systemctl start|stop|... on the drones over SSH
@@ -25,7 +27,7 @@ from collections.abc import Sequence
 from dataclasses import asdict
 
 from companion import __version__, frames
-from companion.errors import CompanionError
+from companion.errors import CompanionError, ConfigError
 from companion.flocking import FlockingParams
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -40,7 +42,20 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run the onboard daemon until SIGTERM/SIGINT")
     run.add_argument("--config", required=True, help="the companion TOML file")
     check = sub.add_parser("check", help="check a config, its model and devices (no flying)")
-    check.add_argument("--config", required=True, help="the companion TOML file")
+    check.add_argument("--config", help="the companion TOML file")
+    check.add_argument(
+        "--autopilot",
+        action="store_true",
+        help="also read the live autopilot's parameters and list every difference from --params "
+        "(stop the daemon first: it holds the link)",
+    )
+    check.add_argument("--url", help="the autopilot link (default: the config's [autopilot] url)")
+    check.add_argument(
+        "--params", help="QGroundControl .params file (default: /etc/vision-swarm/companion.params)"
+    )
+    check.add_argument(
+        "--timeout", type=float, default=10.0, help="seconds to wait for the autopilot"
+    )
 
     log_parser = sub.add_parser("log", help="flight logs")
     log = log_parser.add_subparsers(dest="log_command", required=True)
@@ -106,12 +121,29 @@ def cmd_run(config_path: str) -> int:
     return 0
 
 
-def cmd_check(config_path: str) -> int:
-    from companion.check import format_report, has_failures, run_checks
+def cmd_check(args: argparse.Namespace) -> int:
+    from companion.check import CheckItem, format_report, has_failures, run_checks
 
-    items = run_checks(config_path)
+    if args.config is None and not (args.autopilot and args.url):
+        raise ConfigError("check: give --config FILE, or --autopilot with --url URL")
+    items = run_checks(args.config) if args.config is not None else []
+    if args.autopilot:
+        from companion.param_check import DEFAULT_PARAMS, autopilot_items
+
+        url = args.url or _config_url(args.config)
+        params = args.params or str(DEFAULT_PARAMS)
+        items += autopilot_items(url, params, args.timeout)
+    elif args.params or args.url:
+        raise ConfigError("check: --params and --url need --autopilot")
+    items = items or [CheckItem("check", "FAIL", "nothing to check")]
     print(format_report(items))
     return 1 if has_failures(items) else 0
+
+
+def _config_url(config_path: str) -> str:
+    from companion.config import load_config
+
+    return load_config(config_path).autopilot.url
 
 
 def cmd_log(args: argparse.Namespace) -> int:
@@ -168,7 +200,7 @@ def run(argv: Sequence[str] | None = None) -> int:
     if args.command == "run":
         return cmd_run(args.config)
     if args.command == "check":
-        return cmd_check(args.config)
+        return cmd_check(args)
     if args.command == "log":
         return cmd_log(args)
     return cmd_ground(args)

@@ -382,6 +382,12 @@ class AutopilotEmulator:
     def _param_changed(self, name: str, value: float) -> None:  # called with the lock held
         self._logic.config = with_param(self._logic.config, name, value)
 
+    @property
+    def px4_config(self) -> Px4LogicConfig:
+        """PX4's rules in force (PARAM_SET of COM_OF_LOSS_T / COM_OBL_RC_ACT changes them)."""
+        with self._lock:
+            return self._logic.config
+
     def param_values(self) -> dict[str, float]:
         """The emulated parameter table (name -> value), as PARAM_SET left it."""
         with self._lock:

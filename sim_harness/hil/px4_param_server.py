@@ -4,8 +4,9 @@ The table holds PX4's stock defaults (PX4 main, 02e73e3b6f, read from real PX4 S
 parameters the companion's parameter file and the emulated rules touch, plus the Pixracer's
 serial-port parameters (MAV_1_CONFIG, SER_TEL2_BAUD) that SITL lacks: the emulator plays a board.
 Answers as PX4 does: PARAM_VALUE with the name, value (INT32 bytewise in the float), type, count
-and index; a name it does not have gets no answer at all (PX4 sends nothing, no PARAM_ERROR); a
-PARAM_SET of an unknown name is ignored; a PARAM_SET with another type than the table's is
+and index. A name it does not have (read or set) gets PARAM_ERROR DOES_NOT_EXIST: PX4 SITL sent
+that to MAVSDK, which then fails at once instead of retrying for seconds (a raw pymavlink client
+saw no answer at all from the same PX4). A PARAM_SET with another type than the table's is
 refused (no answer). `on_change` tells the emulator when a value changed (COM_OF_LOSS_T and
 COM_OBL_RC_ACT change its offboard-loss rule at once, as on PX4).
 """
@@ -109,11 +110,15 @@ class ParamServer:
             return [self._value_msg(mav, name) for name in self._order]
         if kind == "PARAM_REQUEST_READ":
             name = self._name_of(msg.param_id, int(msg.param_index))
-            return [] if name is None else [self._value_msg(mav, name)]
+            if name is None:
+                return [self._unknown(mav, msg, int(msg.param_index))]
+            return [self._value_msg(mav, name)]
         if kind == "PARAM_SET":
             name = str(msg.param_id)
             param = self._params.get(name)
-            if param is None or int(msg.param_type) != param.param_type:
+            if param is None:
+                return [self._unknown(mav, msg, -1)]
+            if int(msg.param_type) != param.param_type:
                 return []
             new = from_wire(float(msg.param_value), param.param_type)
             if new != param.value:
@@ -122,6 +127,18 @@ class ParamServer:
                     self._on_change(name, new)
             return [self._value_msg(mav, name)]
         return []
+
+    @staticmethod
+    def _unknown(
+        mav: mavlink.MAVLink, msg: mavlink.MAVLink_message, index: int
+    ) -> mavlink.MAVLink_message:
+        return mav.param_error_encode(
+            msg.get_srcSystem(),
+            msg.get_srcComponent(),
+            str(msg.param_id).encode(),
+            index,
+            mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST,
+        )
 
     def _name_of(self, param_id: str, index: int) -> str | None:
         if index >= 0:

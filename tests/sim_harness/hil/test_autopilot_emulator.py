@@ -382,3 +382,35 @@ def test_stop_is_prompt_and_idempotent() -> None:
     emulator.stop()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind(("127.0.0.1", port))  # the emulator's port was released
+
+
+def test_parameters_read_list_set_and_unknown_names(wire) -> None:
+    """PX4's parameter protocol: the table (stock PX4 defaults), PARAM_ERROR for an unknown name,
+    and COM_OBL_RC_ACT / COM_OF_LOSS_T set over the wire change the offboard-loss rule."""
+    emulator, client = wire(hovering=True)
+    client.send(client.mav.param_request_list_encode(1, 1))
+    first = client.of_type("PARAM_VALUE")
+    names = {first.param_id}
+    while len(names) < first.param_count:
+        names.add(client.of_type("PARAM_VALUE").param_id)
+    assert {"COM_OBL_RC_ACT", "COM_OF_LOSS_T", "MAV_1_CONFIG", "SER_TEL2_BAUD"} <= names
+    client.send(client.mav.param_request_read_encode(1, 1, b"COM_OF_LOS_T", -1))
+    error = client.of_type("PARAM_ERROR")
+    assert (error.param_id, error.error) == ("COM_OF_LOS_T", mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST)
+    five = np.frombuffer(np.int32(5).tobytes(), dtype=np.float32)[0]  # INT32 travels bytewise
+    client.send(client.mav.param_set_encode(1, 1, b"COM_OBL_RC_ACT", five, 6))
+    echo = client.receive(
+        lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "COM_OBL_RC_ACT"
+    )
+    assert echo is not None and echo.param_value == five and echo.param_type == 6
+    client.send(client.mav.param_set_encode(1, 1, b"COM_OF_LOSS_T", 2.0, 9))
+    client.receive(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "COM_OF_LOSS_T")
+    assert emulator.param_values()["COM_OBL_RC_ACT"] == 5
+    assert wait_for(
+        lambda: emulator.config.px4 is not None and _loss_rule(emulator) == (2.0, "HOLD")
+    )
+
+
+def _loss_rule(emulator: AutopilotEmulator) -> tuple[float, str]:
+    config = emulator._logic.config
+    return config.offboard_loss_timeout_s, config.offboard_loss_mode.name
