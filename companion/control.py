@@ -263,11 +263,13 @@ class ControlLaw:
         self.config = config
         self.filter = LowPassFilter(config.low_pass_cutoff_hz, nominal_dt_s)
         self._held_yaw_enu_rad: FloatArray | None = None
+        self._hovering = False
 
     def reset(self) -> None:
         """Forget the filter state and the held yaw (e.g. after a pause of the pipeline)."""
         self.filter.reset()
         self._held_yaw_enu_rad = None
+        self._hovering = False
 
     def _hold(self, yaw_enu_rad: FloatArray) -> FloatArray:
         if self._held_yaw_enu_rad is None or self._held_yaw_enu_rad.shape != yaw_enu_rad.shape:
@@ -333,6 +335,7 @@ class ControlLaw:
         hold = self._hold(np.broadcast_to(safe_yaw, valid.shape).astype(np.float64))
         yaw = yaw_setpoint(v_final, hold, cfg.yaw_hold_speed_mps)
         self._held_yaw_enu_rad = np.where(valid, yaw, np.nan)
+        self._hovering = False
         if not np.all(valid):
             # A hovering row restarts its filter from rest when its inputs come back.
             self.filter.reset_rows(~valid)
@@ -350,13 +353,17 @@ class ControlLaw:
         )
 
     def hover(self, yaw_enu_rad: float, reason: str) -> ControlOutput:
-        """A one-drone hover command (zero velocity, yaw held) and a filter reset.
+        """A one-drone hover command (zero velocity, the current heading held) and a filter reset.
 
         For ticks without a usable policy output (stale images, model failure): the stop is
         immediate, not filtered, and the filter restarts from rest.
         """
         self.filter.reset()
-        held = self._hold(np.asarray(yaw_enu_rad, dtype=np.float64))
+        measured = np.asarray(yaw_enu_rad, dtype=np.float64)
+        # The first hover tick holds the heading the vehicle has now, later ones keep it: holding
+        # the last commanded heading turned PX4 SITL's vehicle by 8 deg at the switch (issue 19).
+        held = self._hold(measured) if self._hovering or not np.isfinite(measured) else measured
+        self._hovering = True
         yaw = held if np.isfinite(held) else np.asarray(0.0)
         zero = np.zeros(3)
         vel_ned, yaw_ned = to_px4_setpoint(zero, yaw)

@@ -119,3 +119,14 @@ def test_after_loading_the_file_the_check_passes_and_a_typo_fails(
     out = capsys.readouterr().out
     assert "COM_OF_LOS_T: the autopilot has no such parameter" in out
     assert "1 difference(s)" in out
+
+
+def test_the_shipped_altitude_ceiling_sits_inside_the_geofence_with_a_margin() -> None:
+    """Issue 19 finding 3: ceiling == fence height let PX4 hold at 30.45 m, breach the fence and
+    raise a geofence failsafe. Both count from the take-off point (EKF origin, home)."""
+    import tomllib
+
+    config = tomllib.loads((SHIPPED.parents[2] / "systemd" / "companion.toml").read_text())
+    ceiling_m = config["control"]["altitude_ceiling_m"]
+    fence_m = {row.name: row.value for row in read_params_file(SHIPPED)}["GF_MAX_VER_DIST"]
+    assert ceiling_m + 3.0 <= fence_m
