@@ -272,9 +272,11 @@ class Daemon:
         deadline_s = self._clock()
         while not self._stop.is_set():
             now_s = self._clock()
+            seen = self._rig.latest_seqs()
             await self._tick(now_s, max(0.0, now_s - deadline_s))
             deadline_s = now_s + period_s  # the floor: never a period without a tick
-            await waiter.wait(self._last_seqs, deadline_s)
+            await asyncio.sleep(0)  # the links and the autopilot run between ticks, always
+            await waiter.wait(seen, deadline_s)
 
     async def _fixed_rate_loop(self, period_s: float) -> None:
         """Ticks on the grid `t0 + k * period` (late ticks skipped, never drifting)."""

@@ -31,9 +31,15 @@ class FreshSetWaiter:
             for slot in latest:
                 slot.on_publish = self._frames.set
 
-    async def wait(self, last_seqs: tuple[int, ...] | None, deadline_s: float) -> None:
-        """Until every face has a frame other than `last_seqs`', a stop, or `deadline_s`."""
-        while not self._stop.is_set() and not self._rig.has_new_set(last_seqs):
+    async def wait(self, seen: tuple[int | None, ...] | None, deadline_s: float) -> None:
+        """Until every face has a frame other than the one it had in `seen` (the rig's
+        `latest_seqs()` at the previous tick), a stop, or `deadline_s`.
+
+        Comparing with what the previous tick *saw*, not with the last image it *used*, matters:
+        a set that fails the rig's rules (skew, a stale or wrong camera) is not used, and must
+        not wake the loop again and again.
+        """
+        while not self._stop.is_set() and not self._rig.has_new_set(seen):
             remaining_s = deadline_s - self._clock()
             if remaining_s <= 0.0:
                 return
@@ -42,7 +48,7 @@ class FreshSetWaiter:
                 remaining_s = min(remaining_s, POLL_S)
             else:
                 self._frames.clear()
-                if self._rig.has_new_set(last_seqs):  # published between the check and clear
+                if self._rig.has_new_set(seen):  # published between the check and the clear
                     return
                 waiters.append(self._frames.wait())
             tasks = [asyncio.ensure_future(w) for w in waiters]

@@ -136,12 +136,16 @@ class Rig:
         """The rig configuration (ids, freshness limits)."""
         return self._config
 
-    def has_new_set(self, last_seqs: tuple[int, ...] | None) -> bool:
-        """Whether every face holds a frame other than the one in `last_seqs` (the sequence
-        numbers of the last image used, FACE_NAMES order): a complete fresh set to stitch."""
-        for index, face in enumerate(FACE_NAMES):
-            frame = self._sources[face].latest()
-            if frame is None or (last_seqs is not None and frame.seq == last_seqs[index]):
+    def latest_seqs(self) -> tuple[int | None, ...]:
+        """The sequence number of each face's latest frame (None: none yet), FACE_NAMES order."""
+        frames = (self._sources[face].latest() for face in FACE_NAMES)
+        return tuple(None if frame is None else frame.seq for frame in frames)
+
+    def has_new_set(self, seen: tuple[int | None, ...] | None) -> bool:
+        """Whether every face holds a frame other than the one it held when `seen` was taken
+        (`latest_seqs()` at the previous tick): a complete fresh set to look at."""
+        for index, seq in enumerate(self.latest_seqs()):
+            if seq is None or (seen is not None and seq == seen[index]):
                 return False
         return True
 

@@ -431,6 +431,37 @@ def test_a_stop_while_searching_for_the_autopilot_ends_promptly(
     assert events[-1] == "stopped"
 
 
+def test_a_set_the_rig_refuses_does_not_spin_the_loop(
+    tmp_path: Path, cameras: CameraEmulator, px4: AutopilotEmulator, make_policy_file: Any
+) -> None:
+    """Found by the HIL swarm: every face streaming but the set refused (here a wrong camera on
+    one face; at start-up, skew) must not wake the frame-locked loop again and again, starving
+    the links and the autopilot. The loop keeps its rate and the event loop stays responsive."""
+    doc = document(tmp_path, cameras, px4, make_policy_file("constant"), free_tcp_port())
+    doc["cameras"]["faces"]["up"]["camera_id"] = "ab" * 12  # not the camera on that port
+    daemon = Daemon(config_from_dict(doc), handle_signals=False, clock=time.monotonic)
+
+    async def body() -> tuple[int, int, float]:
+        run = asyncio.create_task(daemon.run())
+        await until(lambda: daemon.ticks > 0, GUARD_S, "the first tick")
+        beats = 0
+        start, ticks0 = time.monotonic(), daemon.ticks
+        while time.monotonic() - start < 1.5:
+            await asyncio.sleep(0.01)  # another task on the daemon's loop: must keep running
+            beats += 1
+        ticks = daemon.ticks - ticks0
+        took = time.monotonic() - start
+        daemon.request_stop("test over")
+        await asyncio.wait_for(run, GUARD_S)
+        return ticks, beats, took
+
+    ticks, beats, took_s = asyncio.run(body())
+    assert ticks <= 2 * 10 * took_s + 5  # ~10 Hz floor ticks, never a spin (thousands)
+    assert ticks >= 0.5 * 10 * took_s  # the floor still ticks (hover/starting decisions)
+    assert beats >= 20  # the loop yielded: 1.5 s of 10 ms sleeps is ~150 on a quiet machine
+    assert daemon.health.state is HealthState.STOPPING and not px4.setpoints()
+
+
 def test_a_model_with_the_wrong_hash_is_refused_before_anything_flies(
     tmp_path: Path, cameras: CameraEmulator, px4: AutopilotEmulator, make_policy_file: Any
 ) -> None:

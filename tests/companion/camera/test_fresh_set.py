@@ -34,19 +34,14 @@ def publish_all(slots: dict[str, LatestSlot], seq: int, skip: str | None = None)
             slot.publish(frame(face, seq))
 
 
-def seqs_of(slots: dict[str, LatestSlot]) -> tuple[int, ...]:
-    latest = [slots[f].latest() for f in FACE_NAMES]
-    assert all(isinstance(x, CameraFrame) for x in latest)
-    return tuple(x.seq for x in latest if x is not None)
-
-
 def test_a_new_set_needs_a_new_frame_on_every_face() -> None:
     slots = {face: LatestSlot() for face in FACE_NAMES}
     rig = Rig(make_config(), slots)
     assert not rig.has_new_set(None)  # nothing received yet
     publish_all(slots, 1)
     assert rig.has_new_set(None)
-    used = seqs_of(slots)
+    assert rig.latest_seqs() == (1,) * 6
+    used = rig.latest_seqs()
     assert not rig.has_new_set(used)
     publish_all(slots, 2, skip="down")  # five of six: not yet
     assert not rig.has_new_set(used)
@@ -58,7 +53,7 @@ def test_waiter_returns_on_the_sixth_frame_and_at_the_deadline_otherwise() -> No
     slots = {face: LatestSlot() for face in FACE_NAMES}
     rig = Rig(make_config(), slots)
     publish_all(slots, 1)
-    used = seqs_of(slots)
+    used = rig.latest_seqs()
 
     async def scenario() -> tuple[float, float, float]:
         stop = asyncio.Event()
@@ -70,11 +65,11 @@ def test_waiter_returns_on_the_sixth_frame_and_at_the_deadline_otherwise() -> No
         woken = time.monotonic() - start
         start = time.monotonic()
         loop.call_later(0.05, publish_all, slots, 3, "up")
-        await waiter.wait(seqs_of(slots), start + 0.3)  # "up" never comes: the floor
+        await waiter.wait(rig.latest_seqs(), start + 0.3)  # "up" never comes: the floor
         floor = time.monotonic() - start
         start = time.monotonic()
         loop.call_later(0.05, stop.set)
-        await waiter.wait(seqs_of(slots), start + 5.0)
+        await waiter.wait(rig.latest_seqs(), start + 5.0)
         return woken, floor, time.monotonic() - start
 
     woken, floor, stopped = asyncio.run(scenario())
