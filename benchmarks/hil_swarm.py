@@ -72,6 +72,8 @@ class Sampler:
                 pass
 
     def cpu_percent(self) -> dict[str, float]:
+        if len(self.wall) < 2:  # the flight never started (see "aborted")
+            return {}
         wall = self.wall[-1] - self.wall[0]
         return {
             k: round(100 * (v[-1] - v[0]) / wall, 1) for k, v in self.cpu.items() if len(v) == 2
