@@ -1,10 +1,10 @@
 """The HIL swarm: one pybullet world, N unmodified daemons, all on the wall clock.
 
 ```
-world loop (this thread)                       per drone (threads + a child process)
-  physics 100 Hz: latest PX4 command per drone ─▶ WorldVehicle ◀─ PX4 emulator (MAVLink/UDP)
-  render drone i at its capture instants ───────▶ six pty cameras ─▶ companion run ─┘ (MAVSDK)
-  record 10 Hz; faults; lateness
+this process: world loop           PX4 emulator threads (MAVLink/UDP)      daemons (processes)
+  physics 100 Hz ◀── latest command ── WorldVehicle ◀─ PX4 emulator ◀─ MAVSDK ─ companion run
+  poses ──▶ PoseBoard (shared memory)                                            ▲ 6 ptys
+camera process: render drone i at its capture instants ─▶ six pty cameras ──────┘
 ```
 
 The daemons run in real time, so the world must too: physics steps are due on a fixed grid and
@@ -16,11 +16,11 @@ reported as such, never as a result.
 Two processes, like the drone's two kinds of hardware: this one (physics and the PX4 emulators)
 and the camera process (`camera_side`: rendering and the pty cameras), which reads the poses
 from shared memory. Cameras: each drone's six cameras capture together at 10 Hz with a
-per-drone phase (drones are
-switched on at different times); each camera's frame then leaves after its own fixed transfer
-delay plus jitter (free-running OpenMV boards: exposure, readout and USB polling differ), so the
-daemon sees the six tiles arrive spread over up to `camera_delay_s[1]`, stamped with the capture
-time on each camera's own clock and numbered by each camera's own sequence counter.
+per-drone phase (drones are switched on at different times); each camera's frame then leaves
+after its own fixed transfer delay plus jitter (free-running OpenMV boards: exposure, readout
+and USB polling differ), so the daemon sees the six tiles arrive spread over up to
+`camera_delay_s[1]`, stamped with the capture time on each camera's own clock and numbered by
+each camera's own sequence counter.
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ from sim_harness.hil.camera_side import (
 )
 from sim_harness.hil.drone import DroneSetup, HilDrone
 from sim_harness.hil.faults import FaultPlan, FaultRunner
+from sim_harness.hil.lateness import Lateness
 from sim_harness.hil.px4_logic import Px4Mode
 from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, WorldVehicle, home_of, states_ned
 from sim_harness.sim import metrics
@@ -77,69 +78,6 @@ class HilConfig:
     max_late_fraction: float = 0.01
     daemon_overrides: dict[str, dict[str, Any]] = field(default_factory=dict)
     seed: int = 0  # camera phases and delays
-
-
-@dataclass
-class Lateness:
-    """The harness's own timing: is the world keeping up with the wall clock?"""
-
-    physics_steps: int = 0
-    physics_late: int = 0
-    physics_max_behind_s: float = 0.0
-    captures: int = 0
-    captures_late: int = 0
-    capture_max_late_s: float = 0.0
-    render_s: list[float] = field(default_factory=list)
-    frames_sent: int = 0
-    frames_dropped: int = 0
-    max_late_fraction: float = 0.01
-
-    def add_cameras(self, cameras: CaptureStats) -> None:
-        """The camera process's side of the timing."""
-        self.captures, self.captures_late = cameras.captures, cameras.captures_late
-        self.capture_max_late_s = cameras.capture_max_late_s
-        self.render_s = list(cameras.render_s)
-        self.frames_sent = sum(cameras.frames_sent)
-        self.frames_dropped = sum(cameras.frames_dropped)
-
-    @property
-    def physics_late_fraction(self) -> float:
-        return self.physics_late / max(self.physics_steps, 1)
-
-    @property
-    def captures_late_fraction(self) -> float:
-        return self.captures_late / max(self.captures, 1)
-
-    @property
-    def frames_dropped_fraction(self) -> float:
-        return self.frames_dropped / max(self.frames_sent + self.frames_dropped, 1)
-
-    @property
-    def valid(self) -> bool:
-        worst = max(
-            self.physics_late_fraction, self.captures_late_fraction, self.frames_dropped_fraction
-        )
-        return worst <= self.max_late_fraction
-
-    def summary(self) -> dict[str, Any]:
-        render = np.asarray(self.render_s) * 1e3 if self.render_s else np.zeros(1)
-        return {
-            "valid": self.valid,
-            "threshold_fraction": self.max_late_fraction,
-            "physics_steps": self.physics_steps,
-            "physics_late": self.physics_late,
-            "physics_late_fraction": round(self.physics_late_fraction, 5),
-            "physics_max_behind_ms": round(self.physics_max_behind_s * 1e3, 2),
-            "captures": self.captures,
-            "captures_late": self.captures_late,
-            "captures_late_fraction": round(self.captures_late_fraction, 5),
-            "capture_max_late_ms": round(self.capture_max_late_s * 1e3, 2),
-            "render_ms_p50": round(float(np.percentile(render, 50)), 3),
-            "render_ms_p99": round(float(np.percentile(render, 99)), 3),
-            "frames_sent": self.frames_sent,
-            "frames_dropped": self.frames_dropped,
-            "frames_dropped_fraction": round(self.frames_dropped_fraction, 5),
-        }
 
 
 @dataclass
