@@ -11,7 +11,9 @@ Commands (camera faults, stats, stop) arrive over a pipe; the process answers ea
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
+import os
 import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
@@ -85,6 +87,7 @@ class CameraSideConfig:
     jitter_s: float = 0.002
     late_capture_s: float = 0.02
     seed: int = 0
+    nice: int = 0  # the process's niceness, where the OS allows
 
 
 @dataclass
@@ -104,6 +107,8 @@ def _camera_main(config: CameraSideConfig, conn: Connection) -> None:  # pragma:
     from sim_harness.sim.render import PyBulletRenderer
     from sim_harness.sim.world import World
 
+    with contextlib.suppress(PermissionError):  # before the camera threads: they inherit it
+        os.setpriority(os.PRIO_PROCESS, 0, config.nice)
     n = len(config.folders)
     board = PoseBoard(n, config.board_name)
     cameras = [CameraEmulator(f / "dev", source=None).start() for f in config.folders]

@@ -34,6 +34,7 @@ from sim_harness.hil.world_vehicle import WorldVehicle
 from sim_harness.learning.shipped import PROJECT_ROOT
 
 SHIPPED_CONFIG = PROJECT_ROOT / "systemd" / "companion.toml"
+SHIPPED_UNIT = PROJECT_ROOT / "systemd" / "vision-swarm-companion.service"
 LOOPBACK_TCP = "tcp/127.0.0.1"
 
 
@@ -58,6 +59,15 @@ def free_tcp_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
+
+
+def unit_nice(unit: Path = SHIPPED_UNIT) -> int:
+    """The service's `Nice=` (0 when it sets none): the daemons run at the unit's priority."""
+    for line in unit.read_text().splitlines():
+        key, _, value = line.partition("=")
+        if key.strip() == "Nice":
+            return int(value)
+    return 0
 
 
 def companion_command() -> list[str]:
@@ -158,9 +168,11 @@ class HilDrone:
         """`companion run --config FILE` in its own process group, output to daemon.log."""
         self.config_path.write_text(toml_text(self.config_document()))
         env = {k: v for k, v in os.environ.items() if k != "NOTIFY_SOCKET"}
+        # `nice -n` is relative to this (possibly raised) harness thread: the unit's Nice= it is.
+        nice = ["nice", "-n", str(unit_nice() - os.getpriority(os.PRIO_PROCESS, 0))]
         with (self.setup.folder / "daemon.log").open("wb") as log:
             self.process = subprocess.Popen(
-                [*companion_command(), "run", "--config", str(self.config_path)],
+                [*nice, *companion_command(), "run", "--config", str(self.config_path)],
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,

@@ -16,7 +16,7 @@ import numpy as np
 
 from companion.flight_log import TOPIC_FRAME, TOPIC_HEALTH, TOPIC_SETPOINT, LogReader
 from sim_harness.hil.camera_side import CaptureStats
-from sim_harness.hil.drone import HilDrone
+from sim_harness.hil.drone import HilDrone, unit_nice
 from sim_harness.hil.px4_logic import Px4Mode
 from sim_harness.hil.swarm import HilRun
 from sim_harness.sim.plots import save_comparison_figure, save_flight_figures
@@ -123,6 +123,7 @@ def write_results(run: HilRun, out_dir: Path, compare: FlightLog | None = None) 
         "aborted": run.aborted,
         "summary": summary,
         "lateness": run.lateness.summary(),
+        "priorities": {"harness_nice": run.harness_nice, "daemon_nice": unit_nice()},
         "drones": drones,
     }
     if run.faults is not None:
@@ -197,6 +198,8 @@ def report_text(doc: dict[str, Any]) -> str:
         f"{lat['frames_sent'] + lat['frames_dropped']}",
         f"- threshold: {100 * lat['threshold_fraction']:.1f} % for each; this run is "
         f"{'inside' if lat['valid'] else 'OUTSIDE'} it.",
+        f"- priorities: harness nice {doc['priorities']['harness_nice']}, daemons nice "
+        f"{doc['priorities']['daemon_nice']} (the unit's `Nice=`)",
         "",
         "## Flight",
         "",
