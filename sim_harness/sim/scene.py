@@ -112,12 +112,20 @@ class Environment:
         scale = np.float32(s.ground_texture_px / s.ground_tile_m)
         map_x = (eye[..., 0] + t * rays[..., 0]) * scale
         map_y = (eye[..., 1] + t * rays[..., 1]) * scale
-        texel = cv2.remap(
-            self._texture,
-            map_x.reshape(-1, FACE_SIZE_PX),
-            map_y.reshape(-1, FACE_SIZE_PX),
-            interpolation=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_WRAP,
+        # cv2.remap takes maps of fewer than 32767 rows: 64 observers (24,576 rows) at a time.
+        rows_x, rows_y = map_x.reshape(-1, FACE_SIZE_PX), map_y.reshape(-1, FACE_SIZE_PX)
+        chunk = 64 * len(FACES) * FACE_SIZE_PX
+        texel = np.concatenate(
+            [
+                cv2.remap(
+                    self._texture,
+                    rows_x[i : i + chunk],
+                    rows_y[i : i + chunk],
+                    interpolation=cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_WRAP,
+                )
+                for i in range(0, len(rows_x), chunk)
+            ]
         ).reshape(dz.shape)
         fade = np.exp(t * np.float32(-1.0 / s.ground_fade_m))
         ground = np.float32(s.ground_mean) + (texel - np.float32(s.ground_mean)) * fade

@@ -1,0 +1,396 @@
+"""A batched ray-cast renderer: every requested agent's six faces in one vectorized numpy pass.
+
+Same scene and camera model as `sim_harness.sim.render.PyBulletRenderer`, without pybullet:
+
+- The environment (ground and sky) is `sim_harness.sim.scene.Environment.shade`, as there.
+- Each drone is the solid that `sim_harness.sim.quad_body.quad_mesh` triangulates: five boxes
+  (body, four arms) and four ten-sided prisms (the rotors). Each part is a convex polyhedron, so a
+  ray meets it where the last plane it enters precedes the first plane it leaves ("slab" test):
+  9 parts x at most 12 planes per ray instead of 220 triangles.
+- Culling: per (observer, face, other drone) the drone's bounding sphere is projected to a pixel
+  box; only the rays in those boxes that also pass the sphere are tested against its planes.
+- Shading copies TinyRenderer's fragment shader as pybullet configures it: palette colour times
+  (0.6 ambient + 0.35 diffuse + 0.05 specular^2), per RGB channel truncated to an integer, then the
+  same BT.601 gray as `PyBulletRenderer`; the light comes from (-50, 30, 100) (pybullet's default
+  for a z-up world). Rotor sides get TinyRenderer's interpolated normals (smooth), the rest flat.
+- Sampling: one ray per pixel (no anti-aliasing, like TinyRenderer). `sample_offset_px` places the
+  sample inside the pixel. The default (0, 1), the pixel's bottom-left corner, is where TinyRenderer
+  samples (measured: the two renderers then agree on every drone pixel); (0.5, 0.5) would be the
+  pixel centre that `companion.camera.layout` and the environment use.
+- The observer's own body is not drawn; drones nearer than `near_m` or beyond `far_m` along the
+  optical axis are clipped, as TinyRenderer's frustum does.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from companion.camera.layout import FACE_SIZE_PX, FACES, FOV_DEG, stitch
+from companion.frames import quat_to_rotmat
+from sim_harness.sim.quad_body import _PART_U, PALETTE_WIDTH_PX, QuadGeometry
+from sim_harness.sim.render import camera_poses
+from sim_harness.sim.scene import Environment, SceneSpec
+from sim_harness.sim.world import World
+
+FloatArray = NDArray[np.float64]
+_Rim = tuple[FloatArray, FloatArray, FloatArray, FloatArray]  # normals and points of a side's rim
+
+# TinyRenderer's lighting as pybullet sets it up (TinyRendererVisualShapeConverter, up axis z).
+_LIGHT_DIR_WORLD = np.array([-50.0, 30.0, 100.0]) / math.sqrt(50.0**2 + 30.0**2 + 100.0**2)
+_AMBIENT, _DIFFUSE, _SPECULAR, _SPECULAR_POWER = 0.6, 0.35, 0.05, 2.0
+_GRAY_WEIGHTS = np.array([0.299, 0.587, 0.114])  # ITU-R BT.601, as PyBulletRenderer
+_PLANES_PER_PART = 12
+_ROTOR_SIDES = 10  # quad_body._ROTOR_SEGMENTS
+# Where TinyRenderer samples a pixel, from its top-left corner (x right, y down): the bottom-left
+# corner. The default, so that both renderers draw the drones on the same pixels.
+TINYRENDERER_SAMPLE_PX = (0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class DroneSolid:
+    """The drone as convex parts in its body frame (FLU), padded to `_PLANES_PER_PART` planes.
+
+    `normal` (P, 12, 3) outward unit normals and `offset` (P, 12): the part is {x: n.x <= offset};
+    padding planes have n = 0, offset = 1 (always satisfied). `rgb_u8` (P, 3) palette colours.
+    Smooth planes (rotor sides) carry the two rim normals their shading interpolates between:
+    `rim_a`/`rim_b` (P, 12, 3) unit normals at the rim points `rim_pa`/`rim_pb` (P, 12, 3).
+    `part_centre` (P, 3) and `part_radius_m` (P,): a bounding sphere per part.
+    """
+
+    normal: FloatArray
+    offset: FloatArray
+    rgb_u8: NDArray[np.uint8]
+    smooth: NDArray[np.bool_]
+    rim_a: FloatArray
+    rim_b: FloatArray
+    rim_pa: FloatArray
+    rim_pb: FloatArray
+    part_centre: FloatArray
+    part_radius_m: FloatArray
+    radius_m: float
+
+
+def drone_solid(g: QuadGeometry) -> DroneSolid:
+    """Convex parts of `quad_body.quad_mesh(g)`: the body box, four arm boxes, four rotor prisms."""
+    palette = g.palette_rgb_u8()[0]
+    rgb = {part: palette[int(u * PALETTE_WIDTH_PX)] for part, u in _PART_U.items()}
+    parts: list[tuple[list[FloatArray], list[float], NDArray[np.uint8], list[_Rim] | None]] = []
+    spheres: list[tuple[FloatArray, float]] = []
+
+    def box(center: FloatArray, half: FloatArray, yaw: float, colour: NDArray[np.uint8]) -> None:
+        c, s = math.cos(yaw), math.sin(yaw)
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        normals, offsets = [], []
+        for axis in range(3):
+            for sign in (-1.0, 1.0):
+                n = sign * rot[:, axis]
+                normals.append(n)
+                offsets.append(float(n @ center + half[axis]))
+        parts.append((normals, offsets, colour, None))
+        spheres.append((center, float(np.linalg.norm(half))))
+
+    def prism(center: FloatArray, radius: float, height: float, colour: NDArray[np.uint8]) -> None:
+        step = 2 * math.pi / _ROTOR_SIDES
+        normals, offsets, rims = [], [], []
+        for k in range(_ROTOR_SIDES):
+            mid = (k + 0.5) * step
+            n = np.array([math.cos(mid), math.sin(mid), 0.0])
+            normals.append(n)
+            offsets.append(float(n @ center + radius * math.cos(step / 2)))
+            a = np.array([math.cos(k * step), math.sin(k * step), 0.0])
+            b = np.array([math.cos((k + 1) * step), math.sin((k + 1) * step), 0.0])
+            rims.append((a, b, center + radius * a, center + radius * b))
+        for sign in (-1.0, 1.0):
+            normals.append(np.array([0.0, 0.0, sign]))
+            offsets.append(sign * float(center[2]) + height / 2)
+        parts.append((normals, offsets, colour, rims))
+        spheres.append((center, math.hypot(radius, height / 2)))
+
+    box(np.zeros(3), np.array(g.body_half_extents_m), 0.0, rgb["body"])
+    arm_half = np.array([g.arm_length_m / 2, g.arm_half_width_m, g.arm_half_width_m])
+    for yaw in g.arm_yaws_rad():
+        direction = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        box(direction * g.arm_length_m / 2, arm_half, yaw, rgb["arm"])
+    for yaw in g.arm_yaws_rad():
+        direction = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        centre = direction * g.arm_length_m + np.array([0.0, 0.0, g.rotor_height_m])
+        prism(centre, g.rotor_radius_m, g.rotor_thickness_m, rgb["rotor"])
+
+    n_parts = len(parts)
+    normal = np.zeros((n_parts, _PLANES_PER_PART, 3))
+    offset = np.ones((n_parts, _PLANES_PER_PART))
+    smooth = np.zeros((n_parts, _PLANES_PER_PART), dtype=bool)
+    rims = np.zeros((4, n_parts, _PLANES_PER_PART, 3))
+    for p, (normals, offsets, _, rim) in enumerate(parts):
+        normal[p, : len(normals)] = normals
+        offset[p, : len(offsets)] = offsets
+        for k, vectors in enumerate(rim or []):
+            smooth[p, k] = True
+            rims[:, p, k] = vectors
+    return DroneSolid(
+        normal=normal,
+        offset=offset,
+        rgb_u8=np.array([colour for _, _, colour, _ in parts], dtype=np.uint8),
+        smooth=smooth,
+        rim_a=rims[0],
+        rim_b=rims[1],
+        rim_pa=rims[2],
+        rim_pb=rims[3],
+        part_centre=np.array([c for c, _ in spheres]),
+        part_radius_m=np.array([r for _, r in spheres]),
+        radius_m=g.bounding_radius_m,
+    )
+
+
+def pixel_rays_camera(sample_offset_px: tuple[float, float]) -> FloatArray:
+    """Unit ray per pixel in camera coordinates (right, up, forward): (64, 64, 3).
+
+    `sample_offset_px` = (dx, dy): where in the pixel the ray passes, from its top-left corner.
+    """
+    half = math.tan(math.radians(FOV_DEG) / 2)
+    dx, dy = sample_offset_px
+    idx = np.arange(FACE_SIZE_PX)
+    x = ((idx + dx) / FACE_SIZE_PX * 2.0 - 1.0) * half
+    y = (1.0 - (idx + dy) / FACE_SIZE_PX * 2.0) * half
+    rays = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.ones((1, 1))), axis=-1)
+    unit: FloatArray = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    return unit
+
+
+def _enumerate(start: NDArray[np.intp], count: NDArray[np.intp]) -> tuple[NDArray[np.intp], ...]:
+    """For runs [start, start + count): the run of each element and the element's value."""
+    run = np.repeat(np.arange(len(count)), count)
+    first = np.cumsum(count) - count
+    return run, start[run] + np.arange(int(count.sum())) - first[run]
+
+
+def _sphere_pixels(
+    centre: FloatArray, box: NDArray[np.intp], radius_m: float, offset: tuple[float, float]
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Pixels whose ray meets a sphere, per sphere: (sphere index, flat pixel index), each (M,).
+
+    `centre` (T, 3) in camera coordinates (right, up, forward); `box` (4, T): first and last
+    column, first and last row that can see it. Per row, the columns whose ray meets the sphere
+    form one interval: (w.c)^2 >= (|c|^2 - r^2) |w|^2 for w = (u, v, 1), a quadratic in u.
+    Spheres that reach behind the eye keep their whole box.
+    """
+    size = FACE_SIZE_PX
+    half = math.tan(math.radians(FOV_DEG) / 2)
+    c0, c1, r0, r1 = box
+    t, row = _enumerate(r0, r1 - r0 + 1)
+    cx, cy, cz = centre[t, 0], centre[t, 1], centre[t, 2]
+    v = (1.0 - (row + offset[1]) / size * 2.0) * half
+    k = cx * cx + cy * cy + cz * cz - radius_m * radius_m
+    e = v * cy + cz
+    a = cx * cx - k
+    disc = (cx * e) ** 2 - a * (e * e - k * (v * v + 1.0))
+    bounded = (a < 0.0) & (k > 0.0)  # else the sphere's image is unbounded: test every pixel
+    root = np.sqrt(np.maximum(disc, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u_lo, u_hi, u_mid = (-cx * e + root) / a, (-cx * e - root) / a, -cx * e / a
+    # Within the interval w.c keeps one sign; a negative one is the cone behind the eye.
+    empty = bounded & ((disc < 0.0) | (cx * u_mid + e <= 0.0))
+    lo = np.where(bounded, np.ceil((u_lo / half + 1.0) * size / 2 - offset[0]), c0[t])
+    hi = np.where(bounded, np.floor((u_hi / half + 1.0) * size / 2 - offset[0]), c1[t])
+    lo = np.maximum(np.nan_to_num(lo, nan=size), c0[t]).astype(np.intp)
+    hi = np.minimum(np.nan_to_num(hi, nan=-1), c1[t]).astype(np.intp)
+    run, col = _enumerate(lo, np.where(empty, 0, np.maximum(hi - lo + 1, 0)))
+    which, pix = t[run], row[run] * size + col
+    check = ~bounded[run]
+    if check.any():
+        rays = pixel_rays_camera(offset).reshape(-1, 3)[pix[check]]
+        c = centre[which[check]]
+        b = np.einsum("mi,mi->m", rays, c)
+        c2 = np.einsum("mi,mi->m", c, c) - radius_m * radius_m
+        keep = np.ones(len(pix), dtype=bool)
+        keep[check] = ((b * b >= c2) & (b > 0.0)) | (c2 < 0.0)
+        which, pix = which[keep], pix[keep]
+    return which, pix
+
+
+def _face_bases() -> FloatArray:
+    """Columns right, up, axis of each face in the body frame: (6, 3, 3)."""
+    return np.array(
+        [np.column_stack([f.right_body_flu, f.up_body_flu, f.axis_body_flu]) for f in FACES]
+    )
+
+
+class RaycastRenderer:
+    """All agents' six 64x64 faces in one vectorized pass (numpy, CPU), grayscale."""
+
+    name = "raycast"
+
+    def __init__(
+        self,
+        near_m: float = 0.05,
+        far_m: float = 120.0,
+        scene: SceneSpec | None = None,
+        sample_offset_px: tuple[float, float] = TINYRENDERER_SAMPLE_PX,
+    ) -> None:
+        self.near_m = near_m
+        self.far_m = far_m
+        self.environment = Environment(scene or SceneSpec())
+        self.sample_offset_px = sample_offset_px
+        self._rays_cam = pixel_rays_camera(sample_offset_px).reshape(-1, 3)
+        self._bases = _face_bases()
+        self._solid: tuple[QuadGeometry, DroneSolid] | None = None
+
+    def solid(self, geometry: QuadGeometry) -> DroneSolid:
+        if self._solid is None or self._solid[0] != geometry:
+            self._solid = (geometry, drone_solid(geometry))
+        return self._solid[1]
+
+    def render(
+        self,
+        world: World,
+        pos_world_enu: ArrayLike,
+        q_world_body: ArrayLike,
+        agents: Sequence[int] | None = None,
+    ) -> NDArray[np.uint8]:
+        """(K, 64, 384) uint8 strips of the requested agents (all when `agents` is None)."""
+        pos = np.asarray(pos_world_enu, dtype=np.float64)
+        rot = quat_to_rotmat(np.asarray(q_world_body, dtype=np.float64))
+        chosen = np.arange(len(pos)) if agents is None else np.asarray(agents, dtype=np.intp)
+        eyes, _, _ = camera_poses(pos, np.asarray(q_world_body, dtype=np.float64))
+        out = self.environment.shade(eyes[chosen], rot[chosen])
+        flat = out.reshape(-1)
+        pixel, gray = self.drone_pixels(pos, rot, chosen, self.solid(world.geometry))
+        flat[pixel] = gray
+        return stitch(np.clip(np.rint(out), 0, 255).astype(np.uint8))
+
+    def drone_pixels(
+        self, pos: FloatArray, rot: FloatArray, chosen: NDArray[np.intp], solid: DroneSolid
+    ) -> tuple[NDArray[np.intp], FloatArray]:
+        """Flat indices into (K, 6, 64, 64) of pixels where a drone is nearest, and their grays."""
+        n = len(pos)
+        size = FACE_SIZE_PX
+        # Camera frames in the world: (K, 6, 3, 3), columns right, up, axis; eyes (K, 6, 3).
+        basis = np.einsum("kij,fjc->kfic", rot[chosen], self._bases)
+        eye = pos[chosen, None, :] + np.einsum(
+            "kij,fj->kfi", rot[chosen], np.array([f.position_body_flu for f in FACES])
+        )
+        rel = pos[None, None, :, :] - eye[:, :, None, :]  # (K, 6, N, 3)
+        cam = np.einsum("kfic,kfni->kfnc", basis, rel)  # (K, 6, N, 3): right, up, forward
+        x, y, z = cam[..., 0], cam[..., 1], cam[..., 2]
+        r = solid.radius_m
+        keep = (z > self.near_m - r) & (z < self.far_m + r)
+        keep &= chosen[:, None, None] != np.arange(n)[None, None, :]
+        half = math.tan(math.radians(FOV_DEG) / 2)
+        # Extremes of x/z (and y/z) over the sphere: tangent planes through the eye.
+        box = np.empty((4, *x.shape))
+        safe = z > r * 1.001
+        zz = np.where(safe, z * z - r * r, 1.0)
+        for i, c in enumerate((x, y)):
+            root = np.sqrt(np.maximum(c * c + zz, 0.0)) * r
+            box[2 * i] = np.where(safe, (c * z - root) / zz, -np.inf)
+            box[2 * i + 1] = np.where(safe, (c * z + root) / zz, np.inf)
+        dx, dy = self.sample_offset_px
+        col0 = np.ceil((box[0] / half + 1.0) * size / 2 - dx)
+        col1 = np.floor((box[1] / half + 1.0) * size / 2 - dx)
+        row0 = np.ceil((1.0 - box[3] / half) * size / 2 - dy)
+        row1 = np.floor((1.0 - box[2] / half) * size / 2 - dy)
+        col0, row0 = np.clip(col0, 0, size).astype(np.intp), np.clip(row0, 0, size).astype(np.intp)
+        col1 = np.clip(col1, -1, size - 1).astype(np.intp)
+        row1 = np.clip(row1, -1, size - 1).astype(np.intp)
+        keep &= (col1 >= col0) & (row1 >= row0)
+        kk, ff, jj = np.nonzero(keep)
+        if len(kk) == 0:
+            return np.zeros(0, dtype=np.intp), np.zeros(0)
+        centre = cam[kk, ff, jj]  # (T, 3)
+        which, pix = _sphere_pixels(
+            centre,
+            np.stack([col0[kk, ff, jj], col1[kk, ff, jj], row0[kk, ff, jj], row1[kk, ff, jj]]),
+            r,
+            self.sample_offset_px,
+        )
+        ray = self._rays_cam[pix]
+        # The ray in the observed drone's body frame: R_j^T B_kf ray_cam, from R_j^T (eye - p_j).
+        rot_j = rot[jj]  # (T, 3, 3)
+        cam_to_body = np.einsum("tij,tic->tjc", rot_j, basis[kk, ff])[which]  # (M, 3, 3)
+        o = np.einsum("tij,ti->tj", rot_j, -rel[kk, ff, jj])[which]  # (M, 3)
+        d = (cam_to_body * ray[:, None, :]).sum(axis=2)
+        t_hit, part, plane = self._intersect(o, d, solid)
+        cos_axis = self._rays_cam[pix, 2]
+        depth = t_hit * cos_axis
+        hit = np.isfinite(t_hit) & (depth >= self.near_m) & (depth <= self.far_m)
+        which, pix, d, o = which[hit], pix[hit], d[hit], o[hit]
+        t_hit, part, plane = t_hit[hit], part[hit], plane[hit]
+        flat = (kk[which] * len(FACES) + ff[which]) * size * size + pix
+        # Nearest drone per pixel: sort by depth far to near, keep the last write of each pixel.
+        order = np.lexsort((-t_hit, flat))
+        flat, t_hit = flat[order], t_hit[order]
+        last = np.ones(len(flat), dtype=bool)
+        last[:-1] = flat[1:] != flat[:-1]
+        sel = order[last]
+        gray = self._shade(
+            o[sel] + t_hit[last, None] * d[sel], part[sel], plane[sel], rot[jj[which[sel]]], solid
+        )
+        return flat[last], gray
+
+    @staticmethod
+    def _intersect(
+        o: FloatArray, d: FloatArray, solid: DroneSolid
+    ) -> tuple[FloatArray, NDArray[np.intp], NDArray[np.intp]]:
+        """Nearest entry along each ray (M,) into any part (inf if none), the part, its plane.
+
+        Only (ray, part) pairs whose ray passes the part's bounding sphere are slab-tested.
+        """
+        n_rays, (n_parts, n_planes) = len(d), solid.offset.shape
+        oc = o[:, None, :] - solid.part_centre[None, :, :]  # (M, P, 3)
+        b = np.einsum("mpi,mi->mp", oc, d)
+        c = np.einsum("mpi,mpi->mp", oc, oc) - solid.part_radius_m**2
+        ray, part = np.nonzero((b * b >= c) & ((b < 0.0) | (c < 0.0)))
+        n_flat = solid.normal.reshape(-1, 3).T
+        denom = (d @ n_flat).reshape(n_rays, n_parts, n_planes)[ray, part]  # (Q, 12)
+        num = (solid.offset.reshape(-1) - o @ n_flat).reshape(n_rays, n_parts, n_planes)[ray, part]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = num / denom
+        t_in = np.where(denom < 0.0, t, -np.inf)
+        plane = np.argmax(t_in, axis=1)
+        enter = t_in[np.arange(len(ray)), plane]
+        leave = np.where(denom > 0.0, t, np.inf).min(axis=1)
+        outside_parallel = ((denom == 0.0) & (num < 0.0)).any(axis=1)
+        ok = (enter <= leave) & (enter > 0.0) & ~outside_parallel
+        best = np.full(n_rays, np.inf)
+        np.minimum.at(best, ray[ok], enter[ok])
+        nearest = ok & (enter == best[ray])
+        part_of = np.zeros(n_rays, dtype=np.intp)
+        plane_of = np.zeros(n_rays, dtype=np.intp)
+        part_of[ray[nearest]] = part[nearest]
+        plane_of[ray[nearest]] = plane[nearest]
+        return best, part_of, plane_of
+
+    @staticmethod
+    def _shade(
+        hit_body: FloatArray,
+        part: NDArray[np.intp],
+        plane: NDArray[np.intp],
+        rot_world_body: FloatArray,
+        solid: DroneSolid,
+    ) -> FloatArray:
+        """TinyRenderer's fragment colour, as gray, of hits at `hit_body` (M, 3) body frame."""
+        normal = solid.normal[part, plane]
+        smooth = solid.smooth[part, plane]
+        if smooth.any():
+            idx = np.nonzero(smooth)[0]
+            sp, sq = part[idx], plane[idx]
+            pa, edge = solid.rim_pa[sp, sq], solid.rim_pb[sp, sq] - solid.rim_pa[sp, sq]
+            s = np.einsum("mi,mi->m", hit_body[idx] - pa, edge) / np.einsum("mi,mi->m", edge, edge)
+            s = np.clip(s, 0.0, 1.0)[:, None]
+            blend = (1.0 - s) * solid.rim_a[sp, sq] + s * solid.rim_b[sp, sq]
+            normal = normal.copy()
+            normal[idx] = blend / np.linalg.norm(blend, axis=1, keepdims=True)
+        n_world = np.einsum("mij,mj->mi", rot_world_body, normal)
+        lam = n_world @ _LIGHT_DIR_WORLD
+        reflect = 2.0 * lam[:, None] * n_world - _LIGHT_DIR_WORLD
+        reflect /= np.linalg.norm(reflect, axis=1, keepdims=True)
+        spec = np.maximum(reflect[:, 2], 0.0) ** _SPECULAR_POWER
+        gain = _AMBIENT + _DIFFUSE * np.maximum(lam, 0.0) + _SPECULAR * spec
+        rgb = np.minimum(np.floor(solid.rgb_u8[part] * gain[:, None]), 255.0)
+        gray: FloatArray = rgb @ _GRAY_WEIGHTS
+        return gray
