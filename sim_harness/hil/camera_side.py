@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
@@ -109,6 +110,7 @@ def _camera_main(config: CameraSideConfig, conn: Connection) -> None:  # pragma:
 
     with contextlib.suppress(PermissionError):  # before the camera threads: they inherit it
         os.setpriority(os.PRIO_PROCESS, 0, config.nice)
+    sys.setswitchinterval(0.0005)  # captures stay on time beside the pty camera threads
     n = len(config.folders)
     board = PoseBoard(n, config.board_name)
     cameras = [CameraEmulator(f / "dev", source=None).start() for f in config.folders]

@@ -29,6 +29,7 @@ import logging
 import math
 import os
 import signal
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -58,6 +59,9 @@ from sim_harness.sim.world import SimRates, World
 
 log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
+# The world loop shares the interpreter lock with the PX4 emulator threads: a short switch
+# interval (default 5 ms) keeps its 10 ms physics grid on time.
+SWITCH_INTERVAL_S = 0.0005
 
 
 @dataclass(frozen=True)
@@ -199,6 +203,7 @@ class HilSwarm:
         faults = None
         flight_t0 = [0.0] * n
         self.harness_nice = raise_priority(cfg.harness_nice)  # before any thread starts
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         board, side = self._start()
         with World(n) as world:
             try:
