@@ -340,25 +340,35 @@ class RaycastRenderer:
 
         Only (ray, part) pairs whose ray passes the part's bounding sphere are slab-tested.
         """
-        n_rays, (n_parts, n_planes) = len(d), solid.offset.shape
+        n_rays, n_parts = len(d), len(solid.offset)
         oc = o[:, None, :] - solid.part_centre[None, :, :]  # (M, P, 3)
         b = np.einsum("mpi,mi->mp", oc, d)
         c = np.einsum("mpi,mpi->mp", oc, oc) - solid.part_radius_m**2
-        ray, part = np.nonzero((b * b >= c) & ((b < 0.0) | (c < 0.0)))
-        n_flat = solid.normal.reshape(-1, 3).T
-        denom = (d @ n_flat).reshape(n_rays, n_parts, n_planes)[ray, part]  # (Q, 12)
-        num = (solid.offset.reshape(-1) - o @ n_flat).reshape(n_rays, n_parts, n_planes)[ray, part]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = num / denom
-        t_in = np.where(denom < 0.0, t, -np.inf)
-        plane = np.argmax(t_in, axis=1)
-        enter = t_in[np.arange(len(ray)), plane]
-        leave = np.where(denom > 0.0, t, np.inf).min(axis=1)
-        outside_parallel = ((denom == 0.0) & (num < 0.0)).any(axis=1)
-        ok = (enter <= leave) & (enter > 0.0) & ~outside_parallel
+        passes = (b * b >= c) & ((b < 0.0) | (c < 0.0))  # (M, P)
+        rays, parts, enters, planes = [], [], [], []
+        for p in range(n_parts):
+            ray = np.nonzero(passes[:, p])[0]
+            used = np.any(solid.normal[p] != 0.0, axis=1)  # the padding planes constrain nothing
+            normal, offset = solid.normal[p, used], solid.offset[p, used]
+            denom = d[ray] @ normal.T  # (Q, planes)
+            num = offset - o[ray] @ normal.T
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = num / denom
+            t_in = np.where(denom < 0.0, t, -np.inf)
+            plane = np.argmax(t_in, axis=1)
+            enter = t_in[np.arange(len(ray)), plane]
+            leave = np.where(denom > 0.0, t, np.inf).min(axis=1, initial=np.inf)
+            outside_parallel = ((denom == 0.0) & (num < 0.0)).any(axis=1)
+            ok = (enter <= leave) & (enter > 0.0) & ~outside_parallel
+            rays.append(ray[ok])
+            parts.append(np.full(int(ok.sum()), p))
+            enters.append(enter[ok])
+            planes.append(np.nonzero(used)[0][plane[ok]])
+        ray, part = np.concatenate(rays), np.concatenate(parts)
+        enter, plane = np.concatenate(enters), np.concatenate(planes)
         best = np.full(n_rays, np.inf)
-        np.minimum.at(best, ray[ok], enter[ok])
-        nearest = ok & (enter == best[ray])
+        np.minimum.at(best, ray, enter)
+        nearest = enter == best[ray]
         part_of = np.zeros(n_rays, dtype=np.intp)
         plane_of = np.zeros(n_rays, dtype=np.intp)
         part_of[ray[nearest]] = part[nearest]
