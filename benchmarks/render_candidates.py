@@ -90,7 +90,7 @@ def time_drone_pixels(renderer: RaycastRenderer, pos: np.ndarray, q: np.ndarray,
 
 
 def time_warp(pos: np.ndarray, q: np.ndarray, repeats: int) -> dict[str, Any]:
-    import warp as wp  # noqa: PLC0415
+    import warp as wp
 
     wp.config.quiet = True
     wp.init()
