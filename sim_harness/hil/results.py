@@ -150,9 +150,64 @@ def write_results(run: HilRun, out_dir: Path, compare: FlightLog | None = None) 
             {title: {"in-process CNN": [compare], "HIL daemons": [run.log]}},
             out_dir / "compare.png",
         )
+        save_overlay(run.log, compare, out_dir / "overlay.png")
+        doc["compare"]["differences"] = differences(doc, run)
     (out_dir / "hil.json").write_text(json.dumps(_jsonable(doc), indent=2) + "\n")
     (out_dir / "report.md").write_text(report_text(doc))
     return doc
+
+
+def save_overlay(hil: FlightLog, ref: FlightLog, path: Path) -> Path:
+    """Both flights' trajectories in one top view: HIL solid, in-process dashed, per drone."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5), dpi=90)
+    colours = plt.get_cmap("tab10")
+    for i in range(hil.scenario.n_agents):
+        ax.plot(*hil.pos_world_enu[:, i, :2].T, "-", color=colours(i % 10), lw=1.4)
+        ax.plot(*ref.pos_world_enu[:, i, :2].T, "--", color=colours(i % 10), lw=1.0)
+    for goal in hil.scenario.goals:
+        ax.annotate(f"goal ({goal[0]:+.0f}, {goal[1]:+.0f}) m", xy=(0.99, 0.02),
+                    xycoords="axes fraction", ha="right", color="0.4")  # fmt: skip
+    ax.plot([], [], "k-", label="HIL daemons")
+    ax.plot([], [], "k--", label="in-process CNN")
+    ax.set(xlabel="east (m)", ylabel="north (m)", aspect="equal", title="top view, same seed")
+    ax.legend(loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def differences(doc: dict[str, Any], run: HilRun) -> list[str]:
+    """What differs between the two flights by construction, with this run's sizes."""
+    engaged = [e for e in run.engage_s if e is not None]
+    ages = [d["image_age"]["p50_ms"] for d in doc["drones"] if d["image_age"]["p50_ms"]]
+    hovers = sum(d["hover_episodes"] for d in doc["drones"])
+    s, ref = doc["summary"], doc["compare"]["in_process"]
+    out = [
+        f"start: the HIL flight's t = 0 is when the last daemon engaged; the first had engaged "
+        f"{max(engaged) - min(engaged):.1f} s earlier and was already flying"
+        if engaged
+        else "start: no daemon engaged",
+        f"latency: each daemon acts on an image {np.median(ages) if ages else float('nan'):.0f} "
+        "ms old at the median (transfer and stitching; the in-process controller sees images "
+        "rendered at the control instant), and its setpoint reaches the vehicle through MAVSDK "
+        "and the emulator's 50 Hz loop",
+        f"hover episodes: {hovers} in all (stale or incomplete images; in-process: none by "
+        "construction)",
+        f"lateness: {'inside' if doc['lateness']['valid'] else 'OUTSIDE'} the thresholds",
+    ]
+    if s["d_min_m"] is not None and ref["d_min_m"] is not None:
+        out.append(
+            f"closest pair {s['d_min_m']:.2f} m vs {ref['d_min_m']:.2f} m; single flights are "
+            "chaotic (a 1e-6 m/s change of the outputs moved a seed's closest pair by 0.2 m): "
+            "compare over seeds (benchmarks/hil_vs_inprocess.py)"
+        )
+    return out
 
 
 def _jsonable(value: Any) -> Any:
@@ -236,6 +291,9 @@ def report_text(doc: dict[str, Any]) -> str:
                 f"- **{'PASS' if o['passed'] else 'FAIL'}** {o['event']}: expected "
                 f"{o['expected']}; observed {seen}"
             )
-    figures = ["flight.png"] + (["compare.png"] if "compare" in doc else [])
+    if "compare" in doc:
+        lines += ["", "## HIL against the in-process CNN: what differs", ""]
+        lines += [f"- {line}" for line in doc["compare"].get("differences", [])]
+    figures = ["flight.png"] + (["compare.png", "overlay.png"] if "compare" in doc else [])
     lines += ["", *[f"![{f}]({f})" for f in figures], ""]
     return "\n".join(lines)
