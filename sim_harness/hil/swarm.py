@@ -261,7 +261,17 @@ class HilSwarm:
                 board.close()
         lateness.add_cameras(cameras)
         flight = _flight_log(self.scenario, cfg.rates, rows, contacts, stop_reason)
-        return HilRun(flight, self.drones, cameras, lateness, engage_s, flight_t0, faults, aborted)
+        return HilRun(
+            log=flight,
+            drones=self.drones,
+            cameras=cameras,
+            lateness=lateness,
+            engage_s=engage_s,
+            flight_t0_px4=flight_t0,
+            harness_nice=self.harness_nice,
+            faults=faults,
+            aborted=aborted,
+        )
 
     def _engaged(self, engage_s: list[float | None], daemon_t0: list[float]) -> bool:
         """Note each drone's first OFFBOARD; True once all are; abort if a daemon died."""
