@@ -1,0 +1,108 @@
+"""The ray-cast renderer draws what pybullet draws: pinned views, pixel counts, own body hidden."""
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.camera.layout import FACE_NAMES, FOV_DEG, split
+from companion.frames import quat_from_euler_zyx, quat_to_rotmat
+from sim_harness.sim.quad_body import QuadGeometry, quad_mesh
+from sim_harness.sim.raycast import RaycastRenderer, drone_solid
+from sim_harness.sim.render import PyBulletRenderer, camera_poses
+from sim_harness.sim.world import World
+
+OBSERVER = np.array([0.0, 0.0, 5.0])
+FAR_AWAY = np.array([5000.0, 5000.0, 5.0])
+LEVEL = np.array([1.0, 0.0, 0.0, 0.0])
+
+# (offset of the other drone from the observer (m), observer roll, pitch, yaw, other's yaw (rad))
+PINNED_VIEWS = [
+    ((0.6, 0.1, 0.05), 0.0, 0.0, 0.0, 0.3),
+    ((1.2, -0.4, 0.3), 0.2, -0.1, 0.5, 1.0),
+    ((-0.5, 1.5, -0.8), -0.3, 0.2, 2.0, -0.7),
+    ((0.2, -0.3, -2.5), 0.1, 0.4, -1.2, 0.1),
+    ((3.0, 2.0, 1.0), 0.0, 0.0, 3.0, 2.5),
+    ((-4.0, 1.0, 0.5), 0.4, -0.3, 0.2, 0.0),
+]
+
+
+@pytest.fixture(scope="module")
+def world():
+    with World(2) as w:
+        yield w
+
+
+def render_pair(world, renderer, offset, rpy, other_yaw):
+    q = np.stack(
+        [quat_from_euler_zyx(*rpy), quat_from_euler_zyx(0.0, 0.0, other_yaw)]
+    )  # roll, pitch, yaw
+    here = renderer.render(world, np.stack([OBSERVER, OBSERVER + offset]), q, [0])[0]
+    gone = renderer.render(world, np.stack([OBSERVER, FAR_AWAY]), q, [0])[0]
+    return here, here != gone
+
+
+@pytest.mark.parametrize(("offset", "roll", "pitch", "yaw", "other_yaw"), PINNED_VIEWS)
+def test_pinned_views_match_pybullet(world, offset, roll, pitch, yaw, other_yaw) -> None:
+    args = (np.array(offset), (roll, pitch, yaw), other_yaw)
+    ours, our_mask = render_pair(world, RaycastRenderer(), *args)
+    theirs, their_mask = render_pair(world, PyBulletRenderer(), *args)
+    assert their_mask.sum() >= 3
+    iou = (our_mask & their_mask).sum() / (our_mask | their_mask).sum()
+    assert iou >= 0.97
+    assert abs(int(our_mask.sum()) - int(their_mask.sum())) <= 2
+    assert np.abs(ours.astype(int) - theirs.astype(int)).mean() <= 0.05
+
+
+@pytest.mark.parametrize("below_m", [1.0, 1.5])
+def test_drone_below_covers_its_top_view_area(world, below_m) -> None:
+    # Level drone below a level observer: the down camera (0.15 m below the observer's centre)
+    # sees its top near the image centre. Expected pixels: top-view area over one
+    # pixel's footprint. Top view: body square, four rotor decagons, the bits of arm in between.
+    g = QuadGeometry()
+    decagon = 5 * g.rotor_radius_m**2 * math.sin(2 * math.pi / 10)
+    body = 4 * g.body_half_extents_m[0] * g.body_half_extents_m[1]
+    arm_between = g.arm_length_m - g.rotor_radius_m - g.body_half_extents_m[0] * math.sqrt(2)
+    area = body + 4 * decagon + 4 * arm_between * 2 * g.arm_half_width_m
+    distance = below_m - 0.15 - g.rotor_height_m
+    pixel_side = distance * 2 * math.tan(math.radians(FOV_DEG) / 2) / 64
+    _, mask = render_pair(world, RaycastRenderer(), np.array([0, 0, -below_m]), (0, 0, 0), 0.0)
+    faces = split(mask)
+    assert faces.reshape(6, -1).sum(axis=1).argmax() == FACE_NAMES.index("down")
+    assert int(mask.sum()) == pytest.approx(area / pixel_side**2, rel=0.2)
+
+
+def test_own_body_is_hidden_and_an_empty_sky_is_the_environment(world) -> None:
+    renderer = RaycastRenderer()
+    q = np.stack([quat_from_euler_zyx(0.3, -0.2, 1.0), LEVEL])
+    pos = np.stack([OBSERVER, FAR_AWAY])
+    image = renderer.render(world, pos, q, [0])[0]
+    eyes, _, _ = camera_poses(pos[:1], q[:1])
+    env = renderer.environment.shade(eyes, quat_to_rotmat(q[:1]))
+    expected = np.clip(np.rint(env), 0, 255).astype(np.uint8)
+    np.testing.assert_array_equal(split(image), expected[0])
+
+
+def test_deterministic_and_batched_equals_one_by_one(world) -> None:
+    rng = np.random.default_rng(4)
+    with World(5) as w5:
+        pos = OBSERVER + rng.uniform(-2, 2, (5, 3))
+        q = np.stack([quat_from_euler_zyx(*rng.uniform(-0.4, 0.4, 3)) for _ in range(5)])
+        renderer = RaycastRenderer()
+        all_at_once = renderer.render(w5, pos, q)
+        np.testing.assert_array_equal(all_at_once, renderer.render(w5, pos, q))
+        for agent in range(5):
+            np.testing.assert_array_equal(
+                renderer.render(w5, pos, q, [agent])[0], all_at_once[agent]
+            )
+
+
+def test_every_mesh_vertex_lies_on_a_convex_part() -> None:
+    """The solid the renderer intersects is the mesh pybullet draws (quad_body.quad_mesh)."""
+    g = QuadGeometry()
+    solid = drone_solid(g)
+    assert len(solid.offset) == 9  # body, four arms, four rotors
+    vertices = np.asarray(quad_mesh(g).vertices)
+    # Signed distance of each vertex outside each part: max over the part's planes.
+    outside = (np.einsum("pki,vi->vpk", solid.normal, vertices) - solid.offset[None]).max(axis=2)
+    assert np.all(np.abs(outside).min(axis=1) < 1e-9)
