@@ -13,6 +13,21 @@ Rules copied from PX4:
   measured on PX4 SITL: back in OFFBOARD within one heartbeat of the first setpoint, after 8 s in
   the failsafe). Only a mode change (pilot, ground station, takeoff, land, disarm) cancels that.
 - Disarming is refused in the air unless forced (MAVLink magic 21196).
+
+Where the emulator still differs from real PX4 (PX4 SITL + SIH, main 02e73e3b6f; the same MAVSDK
+sequence against both: benchmarks/emulator_fidelity.py, docs/BENCHMARKS.md):
+
+- Healthy/armable ~1 s after start (PX4: 3-6 s, EKF and pre-arm checks); takeoff to 2.5 m then
+  Hold in 3 s (PX4: 7-8 s, spool-up and land detector); land to disarmed 5 s (PX4: 9-12 s), and
+  PX4 shows HOLD again after it disarms (the emulator stays in LAND).
+- The vehicle model reaches a 1.5 m/s command in ~1 s; PX4 flew 1.17-1.27 m/s after 3 s.
+- ATTITUDE_QUATERNION at the telemetry rate, 30 Hz (PX4's onboard link: 50 Hz).
+- Offboard loss: the emulator switches exactly COM_OF_LOSS_T after the last setpoint; PX4 said
+  "Failsafe activated" ~1.09 s after a 1 s COM_OF_LOSS_T. Without an RC link PX4 degrades
+  COM_OBL_RC_ACT 0 (Position) to Return; the emulator models a vehicle with RC: Position.
+- Not emulated: COM_FAIL_ACT_T (PX4's Hold before a Return/Land failsafe action), the geofence
+  (GF_*), velocity limits (MPC_*_VEL_MAX clip commands on PX4), COM_OBC_LOSS_T's "mission
+  computer lost" message, failsafe flags in SYS_STATUS/HEARTBEAT, and every mode not listed.
 - TAKEOFF climbs to the takeoff altitude then switches to HOLD; LAND descends and disarms on
   touchdown; HOLD and the manual modes hold zero velocity.
 """
