@@ -25,6 +25,7 @@ import math
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -323,7 +324,10 @@ def run_px4() -> dict[str, Any] | str:
         return f"not run: {reason}"
     tarball = tarball_from_env()
     assert tarball is not None
-    with Px4Sitl(unpack(tarball, Path("/tmp/vswarm-px4-build"))) as sitl:
+    with (
+        tempfile.TemporaryDirectory(prefix="px4-build-") as build,
+        Px4Sitl(unpack(tarball, Path(build))) as sitl,
+    ):
         sitl.start([Px4Instance(0, params=LOSS_PARAMS)])
         argv = sitl.namespace.command([sys.executable, __file__, "--inner"])
         done = subprocess.run(argv, capture_output=True, text=True, timeout=400, check=False)
