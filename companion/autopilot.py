@@ -45,6 +45,7 @@ from companion.autopilot_types import (
     Stamped,
 )
 from companion.errors import AutopilotError, OffboardLostError
+from companion.geo import GlobalPosition, HomePosition
 
 __all__ = [
     "Autopilot",
@@ -362,6 +363,7 @@ class MavsdkAutopilot:
                 group.create_task(self._consume(api.subscribe_armed(), self._on_armed))
                 group.create_task(self._consume(api.subscribe_in_air(), self._on_in_air))
                 group.create_task(self._consume(api.subscribe_health(), self._on_health))
+                group.create_task(self._consume(api.subscribe_home(), self._on_home))
         except* Exception as group_error:  # logged: the daemon sees stale telemetry stamps
             logger.error("autopilot telemetry stopped: %s", group_error.exceptions)
 
@@ -397,6 +399,17 @@ class MavsdkAutopilot:
 
     def _on_in_air(self, in_air: Any, t_s: float) -> None:
         self._telemetry = replace(self._telemetry, in_air=Stamped(bool(in_air), t_s))
+
+    def _on_home(self, home: Any, t_s: float) -> None:
+        position = GlobalPosition(
+            float(home.latitude_deg), float(home.longitude_deg), float(home.absolute_altitude_m)
+        )
+        if not all(math.isfinite(v) for v in vars(position).values()):
+            return  # no global home yet
+        local = (home.local_north_m, home.local_east_m, home.local_down_m)
+        local_ned = tuple(float(c) if math.isfinite(float(c)) else 0.0 for c in local)
+        value = HomePosition(position, (local_ned[0], local_ned[1], local_ned[2]))
+        self._telemetry = replace(self._telemetry, home=Stamped(value, t_s))
 
     def _on_health(self, health: Any, t_s: float) -> None:
         self._health_ok = bool(health.is_local_position_ok and health.is_home_position_ok)

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.errors import ConfigError
+from companion.geo import HomePosition
 from companion.sections import require_bool, section_from_dict
 from companion.validation import require_range
 
@@ -78,6 +79,7 @@ class AutopilotTelemetry:
     flight_mode: Stamped[FlightMode] | None = None
     armed: Stamped[bool] | None = None
     in_air: Stamped[bool] | None = None
+    home: Stamped[HomePosition] | None = None  # PX4's HOME_POSITION (set on arming)
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from companion import frames
 from companion.errors import ConfigError
 from companion.flocking import cap_speed, migration_velocity
+from companion.geo import require_global
 from companion.sections import section_from_dict
 from companion.validation import require_range, require_vector3
 
@@ -40,6 +41,8 @@ class ControlConfig:
     k_mig: float = 1.0  # migration speed (paper: 1)
     v_max_mps: float = 2.0  # speed cap of the final command (paper: 2)
     migration_point_enu: tuple[float, float, float] | None = None  # None: no migration
+    # Or the point as [lat deg, lon deg, alt AMSL m]: converted with PX4's home (companion.geo).
+    migration_point_global: tuple[float, float, float] | None = None
     low_pass_cutoff_hz: float | None = None  # None: filter off
     yaw_hold_speed_mps: float = 0.3  # below this horizontal speed the yaw setpoint is held
     altitude_floor_m: float | None = 1.0  # no descent below this (None: no floor)
@@ -54,6 +57,15 @@ class ControlConfig:
         if self.migration_point_enu is not None:
             point = require_vector3(f"{s}.migration_point_enu", self.migration_point_enu)
             object.__setattr__(self, "migration_point_enu", point)
+        if self.migration_point_global is not None:
+            field = f"{s}.migration_point_global"
+            point = require_global(field, self.migration_point_global)
+            object.__setattr__(self, "migration_point_global", point)
+            if self.migration_point_enu is not None:
+                raise ConfigError(
+                    f"{field}: give the migration point once, either {field} "
+                    f"([lat_deg, lon_deg, alt_amsl_m]) or {s}.migration_point_enu, not both"
+                )
         if self.low_pass_cutoff_hz is not None:
             require_range(
                 f"{s}.low_pass_cutoff_hz", self.low_pass_cutoff_hz, 0.0, 1000.0, low_inclusive=False

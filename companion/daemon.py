@@ -51,6 +51,7 @@ from companion.control import ControlLaw, ControlOutput
 from companion.daemon_commands import Commander
 from companion.daemon_outputs import Outputs, TickTimes
 from companion.errors import CompanionError
+from companion.geo import GlobalPosition, HomePosition, global_to_local_enu
 from companion.health import (
     Action,
     HealthConfig,
@@ -136,6 +137,8 @@ class Daemon:
         self._last_reason = "no policy output yet"
         self._last_seqs: tuple[int, ...] | None = None
         self._last_control_s: float | None = None  # the law's filter runs on real tick spacing
+        self._home: HomePosition | None = None  # the home the migration point was converted with
+        self._migration_enu: FloatArray | None = None  # [control] migration_point_global, local
         self.ticks = 0
         self.skipped_ticks = 0
 
@@ -360,6 +363,9 @@ class Daemon:
         """The control law on the latest valid output: (output or None, valid, why not)."""
         if not self._last_ok or self._good is None:
             return None, False, self._last_reason
+        migration, waiting = self._migration_point()
+        if waiting:
+            return None, False, waiting
         output, image = self._good
         max_age_s = self.config.daemon.telemetry_max_age_s
         q_capture = self._attitudes.at(image.oldest_capture_time_s, max_age_s)
@@ -371,10 +377,39 @@ class Daemon:
             pos_enu,
             yaw_enu,
             dt_s=dt_s if dt_s is not None and dt_s > 0.0 else None,
+            migration_point_world_enu=migration,
         )
         if not control.ok:
             return control, False, control.reason
         return control, True, self._stale_problem(snapshot, now_s)
+
+    def _migration_point(self) -> tuple[FloatArray | None, str]:
+        """`[control] migration_point_global` in the local ENU frame, from PX4's home position:
+        (the point, "") or (None, why not: no home yet, so neither engage nor fly). (None, "")
+        when the point is given in ENU (or not at all): the control law uses its config."""
+        point = self.config.control.migration_point_global
+        if point is None:
+            return None, ""
+        assert self._commander is not None
+        home = self._commander.autopilot.telemetry().home
+        if home is None:
+            return None, "waiting for PX4's home position (migration_point_global needs it)"
+        if home.value != self._home:
+            target = GlobalPosition(*point)
+            try:
+                local = global_to_local_enu(target, home.value)
+            except ValueError as exc:
+                return None, f"migration_point_global not usable: {exc}"
+            self._home, self._migration_enu = home.value, local
+            detail = {
+                "home": [*vars(home.value.position).values()],
+                "home_local_ned_m": list(home.value.local_ned_m),
+                "migration_point_global": list(point),
+                "migration_point_enu": [round(float(c), 3) for c in local],
+            }
+            log.info("migration point from PX4's home: local ENU %s", detail["migration_point_enu"])
+            self.outputs.event("migration point", "info", detail)
+        return self._migration_enu, ""
 
     def _stale_problem(self, snapshot: RigSnapshot, now_s: float) -> str:
         """Why no fresh output may be coming (shown only if the output turns out stale)."""

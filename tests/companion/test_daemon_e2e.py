@@ -560,3 +560,41 @@ def test_sigterm_holds_exits_0_and_leaves_a_readable_log(
     setpoints = [m.json() for m in LogReader(log).messages() if m.topic == TOPIC_SETPOINT]
     flown = [s for s in setpoints if s["action"] == "fly" and s["tick_latency_s"] is not None]
     assert flown and all(0.0 < s["tick_latency_s"] < 0.1 for s in flown)
+
+
+def test_a_global_migration_point_is_converted_with_px4s_home(
+    tmp_path: Path, cameras: CameraEmulator, px4: AutopilotEmulator, make_policy_file: Any
+) -> None:
+    """`migration_point_global` 100 m north of PX4's home at the hover altitude: the daemon adds
+    a northward migration of k_mig = 1 m/s to the policy's eastward command, once PX4 has sent
+    its home, and logs the converted point."""
+    home = px4.config.home
+    north_deg = math.degrees(100.0 / 6_378_137.0)
+    doc = document(
+        tmp_path, cameras, px4, make_policy_file("constant", (1.0, 0.0, 0.0)), free_tcp_port()
+    )
+    doc["control"] = {"migration_point_global": [home.lat_deg + north_deg, home.lon_deg, 493.0]}
+    daemon = Daemon(config_from_dict(doc), handle_signals=False)
+
+    def migrating(setpoint: Any) -> bool:  # NED: north 1 (migration), east 1 (policy)
+        return abs(setpoint.vx_mps - 1.0) < 0.1 and abs(setpoint.vy_mps - 1.0) < 0.1
+
+    async def body() -> None:
+        run = asyncio.create_task(daemon.run())
+        try:
+            await until(lambda: px4.mode is Px4Mode.OFFBOARD, GUARD_S, "OFFBOARD")
+            await until(
+                lambda: bool(px4.setpoints()) and migrating(last_setpoint(px4)),
+                GUARD_S,
+                "the policy's command plus the migration towards the global point",
+            )
+        finally:
+            daemon.request_stop("test over")
+            await asyncio.wait_for(run, 15.0)
+
+    asyncio.run(body())
+    events = [
+        m.json() for m in LogReader(daemon_log(tmp_path)).messages() if m.topic == TOPIC_HEALTH
+    ]
+    (converted,) = [e for e in events if e.get("event") == "migration point"]
+    np.testing.assert_allclose(converted["detail"]["migration_point_enu"], [0, 100, 5], atol=0.01)
