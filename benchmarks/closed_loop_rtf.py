@@ -2,9 +2,11 @@
 
     python benchmarks/closed_loop_rtf.py [--model models/swarm_cnn.pt] [--agents 9 12]
         [--sim-seconds 10] [--repeats 2] [--threads 1]
+        [--renderer pybullet|raycast]   # raycast writes closed_loop_rtf_raycast.json
 
-Flies the common-goal scenario with the CNN controller (all agents' images rendered by pybullet's
-TinyRenderer each control step, one batched inference), the migration point out of reach so every
+Flies the common-goal scenario with the CNN controller (all agents' images rendered each control
+step by pybullet's TinyRenderer, or by the batched ray caster with --renderer raycast; one batched
+inference), the migration point out of reach so every
 repeat simulates the same span. Reports, per control step (median over repeats): wall time of
 rendering, of inference, of physics (vehicle model + contact checks), of everything else, and the
 real-time factor (simulated seconds per wall-clock second). Prints a table and writes JSON
@@ -30,6 +32,7 @@ from sim_harness.experiments.vision_controller import (
     load_policy,
 )
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
+from sim_harness.sim.renderers import RENDERERS, make_renderer
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
 from sim_harness.sim.world import SimRates
@@ -40,7 +43,12 @@ STAGES = ("render", "inference", "physics", "other")
 
 
 def measure(
-    controller: VisionController, n_agents: int, sim_seconds: float, repeats: int, rates: SimRates
+    controller: VisionController,
+    n_agents: int,
+    sim_seconds: float,
+    repeats: int,
+    rates: SimRates,
+    renderer: str = "pybullet",
 ) -> dict[str, Any]:
     per_repeat: list[dict[str, float]] = []
     for seed in range(repeats):
@@ -51,7 +59,7 @@ def measure(
             goal_distance_m=1e4,
             duration_s=sim_seconds,
         )
-        log = fly(build_scenario(config), controller, rates)
+        log = fly(build_scenario(config), controller, rates, renderer=make_renderer(renderer))
         steps = log.n_steps - 1
         stage = log.stage_time_s
         other = log.wall_time_s - stage["render"] - stage["control"] - stage["physics"]
@@ -85,14 +93,18 @@ def main() -> None:
     parser.add_argument("--sim-seconds", type=float, default=10.0)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    parser.add_argument("--out", type=Path, default=RESULTS / "closed_loop_rtf.json")
+    parser.add_argument("--renderer", default="pybullet", choices=RENDERERS)
+    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    suffix = "" if args.renderer == "pybullet" else f"_{args.renderer}"
+    args.out = args.out or RESULTS / f"closed_loop_rtf{suffix}.json"
     rates = SimRates()
     load_before = os.getloadavg()[0]
     with load_policy(args.model, threads=args.threads) as policy:
         controller = VisionController(policy, VisionControlConfig(), rates.control_dt_s)
         results = [
-            measure(controller, n, args.sim_seconds, args.repeats, rates) for n in args.agents
+            measure(controller, n, args.sim_seconds, args.repeats, rates, args.renderer)
+            for n in args.agents
         ]
         sha256 = policy.sha256
     print(
@@ -109,6 +121,7 @@ def main() -> None:
         )
     report = {
         "benchmark": "closed_loop_rtf",
+        "renderer": args.renderer,
         "model": {"path": str(args.model), "sha256": sha256},
         "physics_hz": rates.physics_hz,
         "control_hz": rates.control_hz,

@@ -2,6 +2,7 @@
 time goes (rendering, physics, teacher, writing).
 
     python benchmarks/dataset_throughput.py [--samples 2000] [--repeats 3]
+        [--renderer pybullet|raycast]   # raycast writes dataset_throughput_raycast.json
 
 Each measurement generates a fresh dataset of the paper's runs (9 drones, full-length runs) with
 `--samples` training samples and small validation/test splits, timing the whole generation
@@ -23,15 +24,20 @@ from pathlib import Path
 
 from sim_harness.dataset.generate import generate
 from sim_harness.dataset.spec import DatasetSpec
+from sim_harness.sim.renderers import RENDERERS
 
 RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
 
 
-def measure(workers: int, samples: int, repeats: int) -> dict[str, object]:
+def measure(workers: int, samples: int, repeats: int, renderer: str) -> dict[str, object]:
     rates, shares = [], []
     for repeat in range(repeats):
         spec = DatasetSpec(
-            train_samples=samples, val_samples=200, test_samples=200, seed=100 + repeat
+            train_samples=samples,
+            val_samples=200,
+            test_samples=200,
+            seed=100 + repeat,
+            renderer=renderer,
         )
         with tempfile.TemporaryDirectory(prefix="bench-ds-") as tmp:
             started = time.perf_counter()
@@ -52,12 +58,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--samples", type=int, default=2000, help="training samples per repeat")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", type=Path, default=RESULTS / "dataset_throughput.json")
+    parser.add_argument("--renderer", default="pybullet", choices=RENDERERS)
+    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    suffix = "" if args.renderer == "pybullet" else f"_{args.renderer}"
+    args.out = args.out or RESULTS / f"dataset_throughput{suffix}.json"
     cores = os.cpu_count() or 1
-    rows = [measure(1, args.samples, args.repeats)]
+    rows = [measure(1, args.samples, args.repeats, args.renderer)]
     if cores > 1:
-        rows.append(measure(cores, args.samples, args.repeats))
+        rows.append(measure(cores, args.samples, args.repeats, args.renderer))
     result = {
         "benchmark": "dataset_throughput",
         "machine": {
@@ -66,6 +75,8 @@ def main() -> None:
             "platform": platform.platform(),
         },
         "n_agents": 9,
+        "renderer": args.renderer,
+        "load_average_1m_after": os.getloadavg()[0],
         "samples_per_repeat": args.samples + 400,
         "repeats": args.repeats,
         "results": rows,

@@ -14,6 +14,7 @@ from sim_harness.dataset.spec import PRESETS, DatasetSpec
 from sim_harness.dataset.store import open_dataset
 from sim_harness.errors import ConfigError
 from sim_harness.sim.out_dir import require_writable_dir
+from sim_harness.sim.renderers import add_renderer_option
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -44,6 +45,7 @@ def add_dataset_commands(sub: Any) -> Any:
     g.add_argument("--max-run-s", type=float, default=None, help="time limit of a run")
     g.add_argument("--shard", type=_shard, default=(0, 1), help="INDEX/COUNT (default 0/1)")
     g.add_argument("--no-progress", action="store_true")
+    add_renderer_option(g)
     g.set_defaults(handler=_generate)
     i = dsub.add_parser("inspect", help="counts, splits, terminations, target stats, figures")
     i.add_argument("dataset", type=Path)
@@ -67,7 +69,7 @@ def command_line() -> str:
 
 
 def _generate(args: argparse.Namespace) -> int:
-    overrides: dict[str, Any] = {"seed": args.seed}
+    overrides: dict[str, Any] = {"seed": args.seed, "renderer": args.renderer}
     for split in ("train", "val", "test"):
         if getattr(args, split) is not None:
             overrides[f"{split}_samples"] = getattr(args, split)

@@ -48,7 +48,8 @@ from sim_harness.dataset.store import (
 )
 from sim_harness.errors import DatasetError
 from sim_harness.sim.progress import ProgressBar, progress_bar
-from sim_harness.sim.render import PyBulletRenderer
+from sim_harness.sim.render import Renderer
+from sim_harness.sim.renderers import make_renderer
 from sim_harness.sim.scene import SceneSpec
 from sim_harness.sim.vehicle import VehicleParams
 from sim_harness.sim.world import World
@@ -78,17 +79,17 @@ class StageTimes:
 
 
 # One world and renderer per worker process, created on its first run.
-_WORKER: tuple[World, PyBulletRenderer] | None = None
+_WORKER: tuple[World, Renderer, str] | None = None
 
 
 def _make_run(root: Path, spec: DatasetSpec, split: str, run_index: int) -> tuple[int, StageTimes]:
     """Simulate and store one run (in a worker process or in-process); returns its size, times."""
     global _WORKER
-    if _WORKER is None or _WORKER[0].n_agents != spec.n_agents:
+    if _WORKER is None or (_WORKER[0].n_agents, _WORKER[2]) != (spec.n_agents, spec.renderer):
         if _WORKER is not None:
             _WORKER[0].close()
-        _WORKER = (World(spec.n_agents), PyBulletRenderer())
-    world, renderer = _WORKER
+        _WORKER = (World(spec.n_agents), make_renderer(spec.renderer), spec.renderer)
+    world, renderer, _ = _WORKER
     run = simulate_run(spec, split, run_index, world, renderer)
     started = time.perf_counter()
     write_run(root, run)
@@ -278,6 +279,7 @@ def finalize(
         "spec": spec.as_dict(),
         "camera": camera_spec(),
         "scene": SceneSpec().as_dict(),
+        "renderer": spec.renderer,
         "vehicle": asdict(VehicleParams()),
         "frames": FRAMES,
         "code_version": code_version(),

@@ -30,6 +30,7 @@ import numpy as np
 from companion.flocking import FlockingParams
 from companion.validation import require_int_range, require_positive, require_range
 from sim_harness.errors import ConfigError
+from sim_harness.sim.renderers import DEFAULT_RENDERER, require_renderer
 from sim_harness.sim.world import SimRates
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
@@ -68,6 +69,7 @@ class DatasetSpec:
     control_hz: int = 10  # = the camera rate: one sample per agent per control step
     shard_index: int = 0
     shard_count: int = 1
+    renderer: str = DEFAULT_RENDERER  # what draws the images (sim_harness.sim.renderers)
 
     def __post_init__(self) -> None:
         for split in SPLITS:
@@ -87,6 +89,7 @@ class DatasetSpec:
         require_int_range("dataset.shard_count", self.shard_count, 1)
         require_int_range("dataset.shard_index", self.shard_index, 0, self.shard_count - 1)
         SimRates(self.physics_hz, self.control_hz)  # validates divisibility
+        require_renderer(self.renderer, "dataset.renderer")
 
     @property
     def rates(self) -> SimRates:
@@ -109,6 +112,8 @@ class DatasetSpec:
         d = self.as_dict()
         for key in ("train_samples", "val_samples", "test_samples", "shard_index", "shard_count"):
             d.pop(key)
+        if d["renderer"] == DEFAULT_RENDERER:  # ids of datasets made before the choice existed
+            d.pop("renderer")
         return d
 
     def content_id(self) -> str:

@@ -59,6 +59,7 @@ from sim_harness.experiments.vision_controller import (
     load_policy,
 )
 from sim_harness.sim.progress import progress_bar
+from sim_harness.sim.renderers import make_renderer, warn_if_trained_elsewhere
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import build_scenario
 
@@ -184,7 +185,8 @@ def fly_and_record(config: AggregateConfig, k: int, policy: BatchPolicy) -> RunD
     def stop_when(pos: FloatArray, t_s: float) -> str | None:
         return termination(rules, pos, mig, t_s)
 
-    flight = fly(scenario, recorder, rules.rates, stop_when=stop_when)
+    renderer = make_renderer(rules.renderer)
+    flight = fly(scenario, recorder, rules.rates, renderer=renderer, stop_when=stop_when)
     n_steps, n = len(recorder.images), scenario.n_agents
     reason = flight.stop_reason if flight.stop_reason != "arrived" else "arrival"
     cmd = recorder.rows.pop("cmd")
@@ -226,7 +228,9 @@ def aggregate(
 ) -> Dataset:
     """Fly (or resume) one aggregation round into `root`; returns the dataset when complete."""
     root = Path(root)
-    load_policy(config.model_path, threads=1).close()  # refuse a bad file before any flight
+    policy = load_policy(config.model_path, threads=1)  # refuse a bad file before any flight
+    warn_if_trained_elsewhere(policy.metadata, config.rules.renderer)
+    policy.close()
     sha = hashlib.sha256(Path(config.model_path).read_bytes()).hexdigest()
     rules = config.rules
     check_or_write_spec(root, rules)

@@ -9,6 +9,7 @@ swarm-sim experiments --suite bar                 # 10 evaluation seeds: the iss
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 import time
@@ -33,6 +34,7 @@ from sim_harness.experiments.suites import (
     SuiteConfig,
 )
 from sim_harness.sim.out_dir import require_writable_dir
+from sim_harness.sim.renderers import add_renderer_option
 from sim_harness.sim.world import SimRates
 
 if TYPE_CHECKING:
@@ -88,6 +90,7 @@ def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_hel
         "--duration", type=float, default=None, help="cut every flight at this many seconds"
     )
     p.add_argument("--no-gradcam", action="store_true", help="skip the Grad-CAM strip")
+    add_renderer_option(p)
     p.add_argument("--quiet", action="store_true", help="no line per flight")
     p.add_argument(
         "--no-progress",
@@ -162,6 +165,7 @@ def _run(
         workers=args.workers,
         rates=SimRates(),
         duration_s=args.duration,
+        renderer=args.renderer,
     )
     require_writable_dir(args.out)
     n_flights = 2 * len(config.experiment_list) * len(config.seeds)
@@ -224,6 +228,7 @@ def add_aggregate_command(dsub: Any) -> None:
     )
     a.add_argument("--workers", type=int, default=1)
     a.add_argument("--no-progress", action="store_true")
+    add_renderer_option(a)
     a.set_defaults(handler=_aggregate)
 
 
@@ -234,7 +239,9 @@ def _aggregate(args: argparse.Namespace) -> int:
         experiments=tuple(e.strip() for e in args.experiments.split(",") if e.strip()),
         seed_base=args.seed_base,
         workers=args.workers,
-        rules=default_rules(args.dispersion_m, args.max_run_s),
+        rules=dataclasses.replace(
+            default_rules(args.dispersion_m, args.max_run_s), renderer=args.renderer
+        ),
     )
     require_writable_dir(args.out)
     started = time.perf_counter()

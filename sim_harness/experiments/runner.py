@@ -25,6 +25,7 @@ from sim_harness.experiments.vision_controller import (
     load_policy,
 )
 from sim_harness.sim.controllers import Controller, TeacherController
+from sim_harness.sim.renderers import make_renderer, warn_if_trained_elsewhere
 from sim_harness.sim.rollout import FlightLog, fly, save_flight, summarize
 from sim_harness.sim.scenarios import build_scenario
 
@@ -102,6 +103,7 @@ def fly_job(
         scenario,
         _controller(job, config, policy),
         config.rates,
+        renderer=make_renderer(config.renderer) if job.controller == "cnn" else None,
         progress=progress,
         progress_label=f"{job.experiment} / {LABELS[job.controller]} / seed {job.seed}",
         progress_lines=progress_lines,
@@ -152,6 +154,7 @@ def run_suite(
     """
     started = time.perf_counter()
     policy = load_policy(config.model_path, threads=1)
+    warn_if_trained_elsewhere(policy.metadata, config.renderer)
     try:
         jobs = _jobs(config)
         records: dict[Job, RunRecord] = {}

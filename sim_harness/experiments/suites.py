@@ -25,6 +25,7 @@ from companion.errors import ConfigError
 from companion.flocking import FlockingParams
 from companion.validation import require_int_range, require_range
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
+from sim_harness.sim.renderers import DEFAULT_RENDERER, require_renderer
 from sim_harness.sim.scenarios import ScenarioConfig
 from sim_harness.sim.world import SimRates
 
@@ -97,6 +98,7 @@ class SuiteConfig:
     rates: SimRates = field(default_factory=SimRates)
     duration_s: float | None = None
     experiments: tuple[str, ...] | None = None  # None: the suite's experiments
+    renderer: str = DEFAULT_RENDERER  # what draws the CNN's images (sim_harness.sim.renderers)
 
     def __post_init__(self) -> None:
         if self.suite not in SUITES:
@@ -116,6 +118,7 @@ class SuiteConfig:
                 low_inclusive=False,
             )
         require_int_range("experiments.workers", self.workers, 1, 256)
+        require_renderer(self.renderer, "experiments.renderer")
         if self.duration_s is not None:
             require_range(
                 "experiments.duration_s", self.duration_s, 0.0, 86_400.0, low_inclusive=False

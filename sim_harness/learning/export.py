@@ -121,6 +121,7 @@ def policy_metadata(
             },
             "dataset": {
                 "id": manifest["id"],
+                "renderer": manifest.get("renderer", "pybullet"),  # older datasets: pybullet
                 "counts": manifest.get("counts"),
                 "code_version": manifest.get("code_version"),
             },

@@ -12,6 +12,7 @@ from companion.flocking import FlockingParams
 from sim_harness.sim.controllers import TeacherController
 from sim_harness.sim.out_dir import require_writable_dir
 from sim_harness.sim.plots import save_flight_figures
+from sim_harness.sim.renderers import add_renderer_option, make_renderer
 from sim_harness.sim.rollout import FlightLog, fly, save_flight, summarize
 from sim_harness.sim.scenarios import SCENARIOS, ScenarioConfig, build_scenario
 from sim_harness.sim.world import SimRates
@@ -58,6 +59,7 @@ def add_sim_commands(sub: Any) -> None:
     p_view.add_argument("--agent", type=int, default=0, help="which drone's view")
     p_view.add_argument("--out", type=Path, default=Path("runs/view"), help="output folder")
     _add_flight_options(p_view)
+    add_renderer_option(p_view)
     p_view.set_defaults(handler=_view)
 
 
@@ -120,7 +122,6 @@ def _describe(summary: dict[str, Any]) -> str:
 
 def _view(args: argparse.Namespace) -> int:
     rates = _rates(args)
-    from sim_harness.sim.render import PyBulletRenderer
     from sim_harness.sim.view import save_layout, save_strip
     from sim_harness.sim.world import World
 
@@ -144,7 +145,7 @@ def _view(args: argparse.Namespace) -> int:
         )
     step = args.step
     with World(config.n_agents) as world:
-        image = PyBulletRenderer().render(
+        image = make_renderer(args.renderer).render(
             world, log.pos_world_enu[step], log.q_world_body[step], [args.agent]
         )[0]
     stem = f"{config.name}-s{config.seed}-step{step}-agent{args.agent}"

@@ -1,0 +1,72 @@
+"""Choosing a renderer by name: one option definition for every command that renders.
+
+- `pybullet`: `sim_harness.sim.render.PyBulletRenderer` (TinyRenderer, one call per face).
+- `raycast`: `sim_harness.sim.raycast.RaycastRenderer` (all agents' faces in one numpy pass; the
+  same images to within a pixel or two per drone: benchmarks/render_fidelity.py).
+
+Datasets record the renderer that made their images (manifest `renderer`), exported models copy it
+into their metadata (`dataset.renderer`), and a CNN flight with another renderer logs a warning.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from collections.abc import Mapping
+from typing import Any
+
+from sim_harness.errors import ConfigError
+from sim_harness.sim.render import Renderer
+
+log = logging.getLogger(__name__)
+
+RENDERERS: tuple[str, ...] = ("pybullet", "raycast")
+DEFAULT_RENDERER = "pybullet"
+
+
+def require_renderer(name: str, field: str = "renderer") -> str:
+    if name not in RENDERERS:
+        choices = ", ".join(RENDERERS)
+        raise ConfigError(f"{field}: unknown renderer {name!r}; choose one of {choices}")
+    return name
+
+
+def make_renderer(name: str = DEFAULT_RENDERER) -> Renderer:
+    """A new renderer of that name (pybullet's is imported only when asked for)."""
+    require_renderer(name)
+    if name == "raycast":
+        from sim_harness.sim.raycast import RaycastRenderer
+
+        return RaycastRenderer()
+    from sim_harness.sim.render import PyBulletRenderer
+
+    return PyBulletRenderer()
+
+
+def add_renderer_option(parser: argparse.ArgumentParser) -> None:
+    """`--renderer pybullet|raycast`, the same on every command that renders."""
+    parser.add_argument(
+        "--renderer",
+        default=DEFAULT_RENDERER,
+        choices=RENDERERS,
+        help=f"what draws the camera images (default {DEFAULT_RENDERER}); raycast renders all "
+        "drones' views in one batched pass, several times faster",
+    )
+
+
+def model_renderer(metadata: Mapping[str, Any]) -> str:
+    """The renderer that made a model's training images (models made before it was recorded:
+    pybullet, the only one there was)."""
+    dataset = metadata.get("dataset") or {}
+    return str(dataset.get("renderer", DEFAULT_RENDERER))
+
+
+def warn_if_trained_elsewhere(metadata: Mapping[str, Any], renderer: str) -> bool:
+    """Log one warning when the model was trained on another renderer's images; True if so."""
+    trained = model_renderer(metadata)
+    if trained == renderer:
+        return False
+    log.warning(
+        "the model was trained on %s images but flies with the %s renderer", trained, renderer
+    )
+    return True

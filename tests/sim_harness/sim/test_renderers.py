@@ -1,0 +1,57 @@
+"""Choosing the renderer: by name, recorded with datasets, a warning on a mismatch."""
+
+import argparse
+import logging
+
+import pytest
+
+from sim_harness.dataset.spec import DatasetSpec
+from sim_harness.errors import ConfigError
+from sim_harness.sim.raycast import RaycastRenderer
+from sim_harness.sim.render import PyBulletRenderer
+from sim_harness.sim.renderers import (
+    RENDERERS,
+    add_renderer_option,
+    make_renderer,
+    model_renderer,
+    warn_if_trained_elsewhere,
+)
+
+
+def test_names_make_their_renderers() -> None:
+    assert isinstance(make_renderer("pybullet"), PyBulletRenderer)
+    assert isinstance(make_renderer("raycast"), RaycastRenderer)
+    with pytest.raises(ConfigError, match="unknown renderer 'opengl'"):
+        make_renderer("opengl")
+
+
+def test_the_option_defaults_to_pybullet_and_refuses_others() -> None:
+    parser = argparse.ArgumentParser()
+    add_renderer_option(parser)
+    assert parser.parse_args([]).renderer == "pybullet"
+    assert parser.parse_args(["--renderer", "raycast"]).renderer == "raycast"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--renderer", "opengl"])
+    assert RENDERERS == ("pybullet", "raycast")
+
+
+def test_dataset_spec_records_the_renderer_and_keeps_old_ids() -> None:
+    pybullet, raycast = DatasetSpec(), DatasetSpec(renderer="raycast")
+    assert "renderer" not in pybullet.content_dict()  # ids of datasets made before the option
+    assert pybullet.as_dict()["renderer"] == "pybullet"
+    assert raycast.content_id() != pybullet.content_id()
+    assert DatasetSpec.from_dict(raycast.as_dict()) == raycast
+    with pytest.raises(ConfigError, match="dataset.renderer"):
+        DatasetSpec(renderer="opengl")
+
+
+def test_a_flight_on_another_renderer_warns_once(caplog) -> None:
+    trained_raycast = {"dataset": {"id": "x", "renderer": "raycast"}}
+    with caplog.at_level(logging.WARNING):
+        assert warn_if_trained_elsewhere(trained_raycast, "pybullet")
+        assert not warn_if_trained_elsewhere(trained_raycast, "raycast")
+        assert not warn_if_trained_elsewhere({"dataset": {"id": "old"}}, "pybullet")
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1
+    assert "trained on raycast images" in warnings[0].getMessage()
+    assert model_renderer({}) == "pybullet"
