@@ -39,6 +39,8 @@ import time
 from collections.abc import Awaitable, Callable, Mapping
 from typing import Any, TypeVar
 
+import numpy as np
+
 from companion import daemon_reports as reports
 from companion import frames
 from companion.autopilot_types import Autopilot
@@ -69,6 +71,7 @@ from companion.telemetry import TelemetryPublisher
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 ATTITUDE_SAMPLE_S = 0.02
+MIGRATION_MOVED_M = 0.1  # a home update moving the converted point more than this is logged
 
 
 class _StopRequested(Exception):
@@ -394,21 +397,24 @@ class Daemon:
         home = self._commander.autopilot.telemetry().home
         if home is None:
             return None, "waiting for PX4's home position (migration_point_global needs it)"
-        if home.value != self._home:
+        if home.value != self._home:  # PX4 re-sends its home; it moves when re-armed elsewhere
             target = GlobalPosition(*point)
             try:
                 local = global_to_local_enu(target, home.value)
             except ValueError as exc:
                 return None, f"migration_point_global not usable: {exc}"
-            self._home, self._migration_enu = home.value, local
-            detail = {
-                "home": [*vars(home.value.position).values()],
-                "home_local_ned_m": list(home.value.local_ned_m),
-                "migration_point_global": list(point),
-                "migration_point_enu": [round(float(c), 3) for c in local],
-            }
-            log.info("migration point from PX4's home: local ENU %s", detail["migration_point_enu"])
-            self.outputs.event("migration point", "info", detail)
+            previous, self._home, self._migration_enu = self._migration_enu, home.value, local
+            if previous is None or float(np.linalg.norm(local - previous)) > MIGRATION_MOVED_M:
+                detail = {
+                    "home": [*vars(home.value.position).values()],
+                    "home_local_ned_m": list(home.value.local_ned_m),
+                    "migration_point_global": list(point),
+                    "migration_point_enu": [round(float(c), 3) for c in local],
+                }
+                log.info(
+                    "migration point from PX4's home: local ENU %s", detail["migration_point_enu"]
+                )
+                self.outputs.event("migration point", "info", detail)
         return self._migration_enu, ""
 
     def _stale_problem(self, snapshot: RigSnapshot, now_s: float) -> str:

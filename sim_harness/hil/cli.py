@@ -38,6 +38,14 @@ def add_hil_commands(sub: Any) -> None:
     p.add_argument("--vmax", type=float, default=2.0, help="speed cap in m/s (default 2)")
     p.add_argument("--model", type=Path, default=SHIPPED_MODEL_PATH, help="policy file")
     p.add_argument("--out", type=Path, default=None, help="default runs/hil-<scenario>-n<N>-s<S>")
+    p.add_argument(
+        "--autopilot",
+        default="emulator",
+        choices=("emulator", "px4-sitl"),
+        help="what flies each drone: our PX4 emulator on the shared pybullet vehicle (default), "
+        "or real PX4 SITL with its own quadrotor model (SIH), one per drone, in a loopback-only "
+        "network namespace (needs root and PX4_SITL_TARBALL)",
+    )
     p.add_argument("--faults", type=Path, default=None, help=f"fault plan TOML (see {PLANS_DIR})")
     p.add_argument(
         "--compare",
@@ -87,6 +95,16 @@ def _hil(args: argparse.Namespace) -> int:
         flocking=FlockingParams(v_max_mps=args.vmax),
         duration_s=args.duration,
     )
+    if args.autopilot == "px4-sitl":
+        from sim_harness.hil.px4_sitl import MAX_INSTANCES, unavailable_reason
+
+        if args.faults is not None:
+            raise ConfigError("faults: fault plans need --autopilot emulator")
+        if args.agents > MAX_INSTANCES:
+            raise ConfigError(f"agents: at most {MAX_INSTANCES} with --autopilot px4-sitl")
+        reason = unavailable_reason()
+        if reason is not None:
+            raise ConfigError(f"autopilot px4-sitl: {reason}")
     plan = load_plan(args.faults, args.agents) if args.faults is not None else None
     duration = args.duration if plan is None else max(args.duration, plan.end_s)
     out = args.out or Path("runs") / f"hil-{args.scenario}-n{args.agents}-s{args.seed}"
@@ -95,16 +113,21 @@ def _hil(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise ConfigError(f"out: cannot create {out}: {exc.strerror}") from exc
     overrides = daemon_overrides(args.daemon_set)
-    doc = fly_hil(config, args.model, out, duration, plan, args.compare, overrides)
+    doc = fly_hil(config, args.model, out, duration, plan, args.compare, overrides, args.autopilot)
     s = doc["summary"]
     print(
         f"{'VALID' if doc['valid'] else 'INVALID'}: arrived {s['arrived']}, "
-        f"d_min {s['d_min_m']:.2f} m, order {s['order_mean']:.2f}; report {out / 'report.md'}"
+        f"d_min {_number(s['d_min_m'])} m, order {_number(s['order_mean'])}; "
+        f"report {out / 'report.md'}"
     )
     if "faults" in doc:
         for outcome in doc["faults"]["outcomes"]:
             print(f"{'PASS' if outcome['passed'] else 'FAIL'} {outcome['event']}")
     return 0 if doc["valid"] else 1
+
+
+def _number(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
 
 
 def fly_hil(
@@ -115,8 +138,12 @@ def fly_hil(
     plan: Any = None,
     compare: bool = False,
     overrides: dict[str, dict[str, Any]] | None = None,
+    autopilot: str = "emulator",
 ) -> dict[str, Any]:
-    """Fly the HIL swarm (and the in-process CNN if `compare`), write `out`, return hil.json."""
+    """Fly the HIL swarm (and the in-process CNN if `compare`), write `out`, return hil.json.
+
+    `autopilot`: "emulator" (our PX4 emulator per drone on the shared pybullet vehicle) or
+    "px4-sitl" (real PX4 SITL per drone, `sim_harness.hil.px4_swarm`)."""
     from sim_harness.hil.results import write_results
     from sim_harness.hil.swarm import HilConfig, HilSwarm
 
@@ -126,6 +153,13 @@ def fly_hil(
         print(f"hil: {message}", flush=True)
 
     hil = HilConfig(daemon_overrides=overrides or {})
+    if autopilot == "px4-sitl":
+        from sim_harness.hil.px4_swarm import Px4Swarm, write_px4_results
+
+        swarm = Px4Swarm(scenario, model, out, hil, progress=say)
+        px4_run = swarm.run(duration_s)
+        ref = fly_in_process(config, model, duration_s) if compare else None
+        return write_px4_results(swarm, px4_run, out, ref)
     run = HilSwarm(scenario, model, out, hil, faults=plan, progress=say).run(duration_s)
     reference = None
     if compare:

@@ -19,6 +19,7 @@ import signal
 import subprocess
 import sys
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,6 +75,70 @@ def companion_command() -> list[str]:
     """`companion` as installed next to this interpreter (the unit's ExecStart), else `-m`."""
     exe = shutil.which("companion", path=str(Path(sys.executable).parent))
     return [exe] if exe else [sys.executable, "-m", "companion.cli"]
+
+
+def daemon_document(
+    setup: DroneSetup,
+    faces: dict[str, dict[str, str]],
+    model_path: Path,
+    url: str,
+    telemetry_endpoint: str,
+    flights_dir: Path,
+    overrides: dict[str, dict[str, Any]],
+    migration_point_global: tuple[float, float, float] | None = None,
+) -> dict[str, Any]:
+    """The shipped example config with one drone's wiring: id, cameras, model, autopilot URL,
+    log folder, telemetry endpoint and the migration point (`migration_point_global`, as an
+    operator gives it in the field, else the setup's local ENU point); `overrides` last."""
+    doc: dict[str, Any] = tomllib.loads(SHIPPED_CONFIG.read_text())
+    doc["drone"] = {"id": setup.drone_id}
+    doc["cameras"]["faces"] = faces
+    doc["policy"] = {**doc["policy"], "model_path": str(model_path.resolve())}
+    doc["policy"].pop("sha256", None)
+    control = doc.setdefault("control", {})
+    if migration_point_global is not None:
+        control["migration_point_global"] = [round(float(c), 8) for c in migration_point_global]
+    elif setup.migration_point_local_enu is not None:
+        control["migration_point_enu"] = [
+            round(float(c), 6) for c in setup.migration_point_local_enu
+        ]
+    doc["autopilot"] = {
+        **doc["autopilot"],
+        "url": url,
+        "discovery_timeout_s": 60.0,  # nine daemons start at once on two cores
+        "health_timeout_s": 60.0,
+    }
+    doc["recorder"] = {**doc["recorder"], "directory": str(flights_dir)}
+    doc["telemetry"] = {
+        **doc["telemetry"],
+        "listen_endpoints": [telemetry_endpoint],
+        "connect_endpoints": [],
+        "multicast_scouting": False,
+    }
+    doc["daemon"] = {**doc["daemon"], "engage": "auto"}
+    for section, values in overrides.items():
+        doc.setdefault(section, {}).update(values)
+    return doc
+
+
+def launch_daemon(
+    config_path: Path, log_path: Path, wrap: Callable[[list[str]], list[str]] | None = None
+) -> subprocess.Popen[bytes]:
+    """`companion run --config FILE` at the unit's `Nice=`, in its own process group, output to
+    `log_path`; `wrap` turns the command into another (e.g. run inside a network namespace)."""
+    env = {k: v for k, v in os.environ.items() if k != "NOTIFY_SOCKET"}
+    # `nice -n` is relative to this (possibly raised) harness thread: the unit's Nice= it is.
+    nice = ["nice", "-n", str(unit_nice() - os.getpriority(os.PRIO_PROCESS, 0))]
+    argv = [*companion_command(), "run", "--config", str(config_path)]
+    with log_path.open("wb") as log:
+        return subprocess.Popen(
+            [*nice, *(wrap(argv) if wrap is not None else argv)],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+            env=env,
+        )
 
 
 @dataclass(frozen=True)
@@ -133,33 +198,15 @@ class HilDrone:
 
     def config_document(self) -> dict[str, Any]:
         """The shipped example config with this drone's wiring."""
-        doc: dict[str, Any] = tomllib.loads(SHIPPED_CONFIG.read_text())
-        doc["drone"] = {"id": self.setup.drone_id}
-        doc["cameras"]["faces"] = self.cameras.faces_config()
-        doc["policy"] = {**doc["policy"], "model_path": str(self.model_path.resolve())}
-        doc["policy"].pop("sha256", None)
-        control = doc.setdefault("control", {})
-        if self.setup.migration_point_local_enu is not None:
-            control["migration_point_enu"] = [
-                round(float(c), 6) for c in self.setup.migration_point_local_enu
-            ]
-        doc["autopilot"] = {
-            **doc["autopilot"],
-            "url": f"udpin://127.0.0.1:{self.px4.config.client_port}",
-            "discovery_timeout_s": 60.0,  # nine daemons start at once on two cores
-            "health_timeout_s": 60.0,
-        }
-        doc["recorder"] = {**doc["recorder"], "directory": str(self.flights_dir)}
-        doc["telemetry"] = {
-            **doc["telemetry"],
-            "listen_endpoints": [self.telemetry_endpoint],
-            "connect_endpoints": [],
-            "multicast_scouting": False,
-        }
-        doc["daemon"] = {**doc["daemon"], "engage": "auto"}
-        for section, values in self.overrides.items():
-            doc.setdefault(section, {}).update(values)
-        return doc
+        return daemon_document(
+            self.setup,
+            self.cameras.faces_config(),
+            self.model_path,
+            f"udpin://127.0.0.1:{self.px4.config.client_port}",
+            self.telemetry_endpoint,
+            self.flights_dir,
+            self.overrides,
+        )
 
     def start_autopilot(self) -> None:
         self.px4.start()
@@ -167,18 +214,7 @@ class HilDrone:
     def start_daemon(self) -> None:
         """`companion run --config FILE` in its own process group, output to daemon.log."""
         self.config_path.write_text(toml_text(self.config_document()))
-        env = {k: v for k, v in os.environ.items() if k != "NOTIFY_SOCKET"}
-        # `nice -n` is relative to this (possibly raised) harness thread: the unit's Nice= it is.
-        nice = ["nice", "-n", str(unit_nice() - os.getpriority(os.PRIO_PROCESS, 0))]
-        with (self.setup.folder / "daemon.log").open("wb") as log:
-            self.process = subprocess.Popen(
-                [*nice, *companion_command(), "run", "--config", str(self.config_path)],
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,
-                env=env,
-            )
+        self.process = launch_daemon(self.config_path, self.setup.folder / "daemon.log")
 
     @property
     def alive(self) -> bool:

@@ -109,16 +109,27 @@ def drone_summary(
     }
 
 
-def write_results(run: HilRun, out_dir: Path, compare: FlightLog | None = None) -> dict[str, Any]:
-    """Write the run folder; returns the `hil.json` document."""
+def write_results(
+    run: HilRun,
+    out_dir: Path,
+    compare: FlightLog | None = None,
+    drones: list[dict[str, Any]] | None = None,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write the run folder; returns the `hil.json` document. `drones`: the per-drone rows when
+    they come from elsewhere than `run.drones` (real PX4: `px4_swarm`); `extra`: more keys
+    (`autopilot` names what flew the vehicles, "emulator" by default)."""
     save_flight(run.log, out_dir)
     save_flight_figures(run.log, out_dir)
     summary = summarize(run.log)
-    drones = [
-        drone_summary(d, e, t0, run.cameras)
-        for d, e, t0 in zip(run.drones, run.engage_s, run.flight_t0_px4, strict=True)
-    ]
+    if drones is None:
+        drones = [
+            drone_summary(d, e, t0, run.cameras)
+            for d, e, t0 in zip(run.drones, run.engage_s, run.flight_t0_px4, strict=True)
+        ]
     doc: dict[str, Any] = {
+        "autopilot": "emulator",
+        **(extra or {}),
         "valid": run.aborted is None and run.lateness.valid,
         "aborted": run.aborted,
         "summary": summary,
@@ -239,7 +250,13 @@ def report_text(doc: dict[str, Any]) -> str:
         lines += [f"The flight did not run: {doc['aborted']}", ""]
     lines += [
         "Every drone is the unmodified `companion run --config FILE` daemon, fed by six pty "
-        "cameras rendered from the shared world and flying through its own PX4 emulator.",
+        "cameras rendered from the shared world and flying through "
+        + (
+            "its own real PX4 (SITL, flying PX4's own quadrotor model SIH; the world places each "
+            "drone where its PX4 reports it)."
+            if doc.get("autopilot") == "px4-sitl"
+            else "its own PX4 emulator."
+        ),
         "",
         "## Harness lateness",
         "",

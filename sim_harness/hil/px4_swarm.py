@@ -1,0 +1,570 @@
+"""The HIL swarm with a real PX4 per drone (`swarm-sim hil --autopilot px4-sitl`).
+
+```
+PX4 SITL + SIH (one per drone, loopback-only namespace)       daemons (in the namespace)
+  flies its own vehicle ◀──────── MAVSDK offboard ────────────── companion run ◀─ 6 ptys
+  GCS link ── LOCAL_POSITION_NED, ATTITUDE_QUATERNION ──▶ this process: world loop        ▲
+                                  poses ──▶ PoseBoard ──▶ camera process (render) ───────┘
+```
+
+Each drone's PX4 flies PX4's own quadrotor model (SIH); nothing here moves the vehicles. The
+harness is a ground station per drone (pymavlink on PX4's GCS link, `PoseStation`): it reads the
+pose PX4 reports, places that drone in the shared pybullet world (PoseBoard, for the cameras;
+contacts are checked in the world) and, as a pilot would, arms each vehicle and takes it off to
+its spawn altitude before the daemons start.
+
+One global frame: the world's origin is `DEFAULT_ORIGIN` on the ground; drone i's SIH starts at
+its spawn point's ground position (`home_of`), which becomes its PX4's home and EKF origin. Its
+world position is that point plus its local NED position in ENU (a flat-earth frame, like the
+daemon's conversion). GLOBAL_POSITION_INT is compared with it once after take-off
+(`frame_check_m`): the EKF origin is set from a noisy GPS fix, some decimetres off the SIH start,
+so the local position (which starts at zero where the vehicle really stood) places the drone
+better than the global one. The goal
+reaches each daemon as an operator gives it in the field: `[control] migration_point_global`
+(lat, lon, alt AMSL of the scenario's migration point), which the daemon converts with the home
+its PX4 reports.
+
+Timing: the world loop runs on the 100 Hz physics grid, but the physics is PX4's; a world step is
+*late* when the loop ran more than `late_physics_s` behind the grid or a drone's newest PX4 pose
+was older than `late_physics_s` + one pose period (PX4 or its link starved of CPU). The camera
+side counts its own lateness as in the emulator harness (`Lateness`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.frames import ned_to_enu, quat_ned_frd_to_enu_flu
+from companion.geo import GlobalPosition, enu_offset_m
+from companion.param_check import BOARD_ONLY, read_params_file
+from sim_harness.errors import SimError
+from sim_harness.hil.camera_side import CameraSide, CameraSideConfig, PoseBoard
+from sim_harness.hil.drone import (
+    LOOPBACK_TCP,
+    DroneSetup,
+    daemon_document,
+    free_tcp_port,
+    launch_daemon,
+    toml_text,
+)
+from sim_harness.hil.lateness import Lateness
+from sim_harness.hil.px4_gcs import GroundStation
+from sim_harness.hil.px4_logic import Px4Mode
+from sim_harness.hil.px4_params import SHIPPED_PARAMS
+from sim_harness.hil.px4_sitl import Px4Instance, Px4Sitl, RunningPx4, tarball_from_env, unpack
+from sim_harness.hil.results import flight_log_stats, write_results
+from sim_harness.hil.swarm import (
+    SWITCH_INTERVAL_S,
+    HilConfig,
+    HilRun,
+    _flight_log,
+    raise_priority,
+)
+from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, home_of
+from sim_harness.sim.rollout import FlightLog, has_arrived
+from sim_harness.sim.scenarios import Scenario
+from sim_harness.sim.world import World
+
+log = logging.getLogger(__name__)
+FloatArray = NDArray[np.float64]
+POSE_RATE_HZ = 50.0  # LOCAL_POSITION_NED and ATTITUDE_QUATERNION on the GCS link
+TARGET_RATE_HZ = 10.0  # POSITION_TARGET_LOCAL_NED: what PX4 flies (the flight log's setpoint)
+TAKEOFF_TIMEOUT_S = 60.0
+IDENTITY_Q = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+class PoseStation(GroundStation):
+    """A ground station that also keeps PX4's latest ATTITUDE_QUATERNION (NED <- FRD)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.attitude: tuple[float, FloatArray] | None = None  # receive time, q (w, x, y, z)
+
+    def _on_message(self, msg: Any, now: float) -> None:
+        if msg.get_type() == "ATTITUDE_QUATERNION":
+            self.attitude = (now, np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=np.float64))
+            return
+        super()._on_message(msg, now)
+
+    def stream(self, message_id: int, rate_hz: float) -> None:
+        """SET_MESSAGE_INTERVAL on this link (PX4's GCS link streams at its normal-mode rates)."""
+        self.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, message_id, 1e6 / rate_hz)
+
+
+@dataclass
+class Px4Drone:
+    """One drone: its PX4 instance, the harness's ground station on it, and its daemon."""
+
+    setup: DroneSetup
+    px4: RunningPx4
+    gcs: PoseStation
+    faces: dict[str, dict[str, str]]
+    migration_point_global: tuple[float, float, float] | None
+    telemetry_endpoint: str = field(default_factory=lambda: f"{LOOPBACK_TCP}:{free_tcp_port()}")
+    process: subprocess.Popen[bytes] | None = None
+    exit_code: int | None = None
+    takeoff_s: float | None = None
+
+    @property
+    def config_path(self) -> Path:
+        return self.setup.folder / "companion.toml"
+
+    @property
+    def flights_dir(self) -> Path:
+        return self.setup.folder / "flights"
+
+    @property
+    def alive(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+    def daemon_log_tail(self, lines: int = 5) -> str:
+        path = self.setup.folder / "daemon.log"
+        text = path.read_text(errors="replace") if path.exists() else ""
+        return "\n".join(text.splitlines()[-lines:])
+
+
+def shipped_params() -> dict[str, float]:
+    """The shipped parameter file as PX4 start-up parameters (names SITL has: not board-only)."""
+    return {r.name: r.value for r in read_params_file(SHIPPED_PARAMS) if r.name not in BOARD_ONLY}
+
+
+class Px4Swarm:
+    """Runs one scenario with N daemons and N real PX4s; `run()` returns a `HilRun` (use once).
+
+    `px4_root`: an unpacked PX4 SITL build (default: unpacked from `PX4_SITL_TARBALL` into the
+    run folder's `px4/`, removed afterwards).
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        model_path: Path,
+        out_dir: Path,
+        config: HilConfig | None = None,
+        progress: Callable[[str], None] | None = None,
+        px4_root: Path | None = None,
+    ) -> None:
+        self.scenario = scenario
+        self.model_path = model_path
+        self.out_dir = out_dir
+        self.config = config or HilConfig()
+        self.progress = progress or (lambda _msg: None)
+        self.px4_root = px4_root
+        n = scenario.n_agents
+        rng = np.random.default_rng(self.config.seed)
+        period = 1.0 / self.config.camera_rate_hz
+        self.phase_s = (np.arange(n) + rng.uniform(0, 1, n)) * period / n
+        self.delay_s = rng.uniform(*self.config.camera_delay_s, (n, 6))
+        pos = scenario.initial_pos_world_enu
+        self.homes = np.column_stack([pos[:, :2], np.zeros(n)])  # SIH starts on the ground
+        self.setups = [
+            DroneSetup(
+                index=i,
+                home_world_enu=self.homes[i],
+                migration_point_local_enu=None,  # given globally (migration_point_global)
+                folder=out_dir / f"drone{i + 1}",
+            )
+            for i in range(n)
+        ]
+        self.drones: list[Px4Drone] = []
+        self.harness_nice: int | None = None
+        self.pose_gap_max_s = [0.0] * n
+        self.frame_check_m: list[tuple[float, float] | None] = [None] * n
+        self.flight_t0 = 0.0  # monotonic time of the flight's t = 0
+
+    # -- set-up ----------------------------------------------------------------------------
+
+    def _migration_global(self, i: int) -> tuple[float, float, float] | None:
+        point = self.scenario.migration_points[i]
+        if np.isnan(point).any():
+            return None
+        home = home_of(DEFAULT_ORIGIN, point)
+        return (home.lat_deg, home.lon_deg, home.alt_amsl_m)
+
+    def _instances(self) -> list[Px4Instance]:
+        params = shipped_params()
+        specs = []
+        for setup in self.setups:
+            home = home_of(DEFAULT_ORIGIN, setup.home_world_enu)
+            specs.append(
+                Px4Instance(setup.index, home.lat_deg, home.lon_deg, home.alt_amsl_m, params)
+            )
+        return specs
+
+    def _take_off(self) -> None:
+        """Every vehicle: ready, armed, taken off to its spawn altitude (in parallel)."""
+        errors: list[BaseException] = []
+
+        def one(drone: Px4Drone) -> None:
+            altitude = float(self.scenario.initial_pos_world_enu[drone.setup.index, 2])
+            try:
+                drone.takeoff_s = drone.gcs.arm_and_take_off(altitude, TAKEOFF_TIMEOUT_S)
+            except BaseException as exc:
+                errors.append(exc)
+
+        threads = [threading.Thread(target=one, args=(d,), daemon=True) for d in self.drones]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        if errors:
+            raise _Abort(f"take-off failed: {errors[0]}")
+
+    def _check_frame(self) -> None:
+        """Each drone's world position from its local NED against GLOBAL_POSITION_INT (m)."""
+        origin = GlobalPosition(
+            DEFAULT_ORIGIN.lat_deg, DEFAULT_ORIGIN.lon_deg, DEFAULT_ORIGIN.alt_amsl_m
+        )
+        pos, _, _ = self._poses(time.monotonic())
+        for i, drone in enumerate(self.drones):
+            gp = drone.gcs.global_position
+            if gp is None:
+                continue
+            where = GlobalPosition(gp.lat * 1e-7, gp.lon * 1e-7, gp.alt * 1e-3)
+            error = enu_offset_m(where, origin) - pos[i]
+            self.frame_check_m[i] = (float(np.linalg.norm(error[:2])), float(error[2]))
+
+    # -- poses -----------------------------------------------------------------------------
+
+    def _poses(self, now: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """World ENU positions, velocities (N, 3) and attitudes (N, 4) from every PX4's latest."""
+        n = self.scenario.n_agents
+        pos = self.scenario.initial_pos_world_enu.copy()
+        vel = np.zeros((n, 3))
+        q = np.tile(IDENTITY_Q, (n, 1))
+        for i, drone in enumerate(self.drones):
+            sample = drone.gcs.position()
+            if sample is not None:
+                local = ned_to_enu(np.array([sample.x, sample.y, sample.z]))
+                pos[i] = self.homes[i] + local
+                vel[i] = ned_to_enu(np.array([sample.vx, sample.vy, sample.vz]))
+                self.pose_gap_max_s[i] = max(self.pose_gap_max_s[i], now - sample.t_s)
+            attitude = drone.gcs.attitude
+            if attitude is not None and np.all(np.isfinite(attitude[1])):
+                q[i] = quat_ned_frd_to_enu_flu(attitude[1])
+        return pos, vel, q
+
+    def _pose_age_s(self, now: float) -> float:
+        ages = [
+            now - s.t_s if (s := d.gcs.position()) is not None else math.inf for d in self.drones
+        ]
+        return max(ages, default=0.0)
+
+    def _targets(self) -> FloatArray:
+        """The velocity PX4 flies now (POSITION_TARGET_LOCAL_NED), world ENU; NaN when none."""
+        out = np.full((self.scenario.n_agents, 3), np.nan)
+        for i, drone in enumerate(self.drones):
+            with drone.gcs._lock:
+                latest = drone.gcs.targets[-1][1] if drone.gcs.targets else None
+            if latest is not None:
+                out[i] = ned_to_enu(np.array([latest.vx, latest.vy, latest.vz]))
+        return out
+
+    # -- the flight ------------------------------------------------------------------------
+
+    def run(self, duration_s: float) -> HilRun:
+        cfg = self.config
+        n = self.scenario.n_agents
+        lateness = Lateness(max_late_fraction=cfg.max_late_fraction)
+        rows: dict[str, list[FloatArray]] = {k: [] for k in ("pos", "vel", "q", "sp")}
+        contacts: list[tuple[int, int, int]] = []
+        engage_s: list[float | None] = [None] * n
+        stop_reason, aborted = "time_limit", None
+        self.harness_nice = raise_priority(cfg.harness_nice)
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        board = PoseBoard(n)
+        board.write(self.scenario.initial_pos_world_enu, np.tile(IDENTITY_Q, (n, 1)))
+        side = CameraSide(
+            CameraSideConfig(
+                folders=tuple(s.folder for s in self.setups),
+                board_name=board.name,
+                phase_s=tuple(float(p) for p in self.phase_s),
+                delay_s=tuple(tuple(float(d) for d in row) for row in self.delay_s),
+                rate_hz=cfg.camera_rate_hz,
+                jitter_s=cfg.camera_jitter_s,
+                late_capture_s=cfg.late_capture_s,
+                seed=cfg.seed,
+                nice=cfg.harness_nice,
+            )
+        )
+        sitl: Px4Sitl | None = None
+        with World(n) as world, contextlib.ExitStack() as stack:
+            try:
+                sitl = stack.enter_context(Px4Sitl(self._root(stack), self.out_dir / "px4"))
+                self.progress(f"starting {n} PX4 SITL instances (SIH)")
+                for running, setup in zip(sitl.start(self._instances()), self.setups, strict=True):
+                    gcs = PoseStation(running.spec.gcs_port, sitl.namespace, running.spec.system_id)
+                    gcs.start()
+                    self.drones.append(
+                        Px4Drone(
+                            setup,
+                            running,
+                            gcs,
+                            side.faces_config[setup.index],
+                            self._migration_global(setup.index),
+                        )
+                    )
+                    stack.callback(gcs.stop)
+                for drone in self.drones:
+                    drone.gcs.wait_ready(TAKEOFF_TIMEOUT_S)
+                    drone.gcs.stream(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, POSE_RATE_HZ)
+                    drone.gcs.stream(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, POSE_RATE_HZ)
+                    drone.gcs.stream(
+                        mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED, TARGET_RATE_HZ
+                    )
+                self.progress("PX4s ready: arming and taking off to the spawn altitudes")
+                self._take_off()
+                self._check_frame()
+                side.start_capturing()
+                self.progress(f"in the air; starting {n} daemons")
+                for drone in self.drones:
+                    self._start_daemon(drone, sitl)
+                daemon_t0 = time.monotonic()
+                clock = _WorldClock(self, world, board, lateness)
+                deadline = daemon_t0 + cfg.engage_timeout_s
+                while not self._engaged(engage_s, daemon_t0):
+                    if time.monotonic() > deadline:
+                        missing = [
+                            d.setup.drone_id
+                            for d, e in zip(self.drones, engage_s, strict=True)
+                            if e is None
+                        ]
+                        raise _Abort(f"not engaged after {cfg.engage_timeout_s:g} s: {missing}")
+                    clock.advance_until(time.monotonic() + 0.05)
+                lateness.__init__(max_late_fraction=cfg.max_late_fraction)  # type: ignore[misc]
+                self.pose_gap_max_s = [0.0] * n
+                side.call("reset_stats")
+                flight_start = time.monotonic()
+                self.progress(f"all engaged (last after {max(e or 0 for e in engage_s):.1f} s)")
+                steps = math.ceil(duration_s * cfg.rates.control_hz - 1e-9)
+                for step in range(steps + 1):
+                    touching = clock.advance_until(flight_start + step * cfg.rates.control_dt_s)
+                    contacts.extend((step, i, j) for i, j in touching)
+                    pos, vel, q = clock.last
+                    rows["pos"].append(pos)
+                    rows["vel"].append(vel)
+                    rows["q"].append(q)
+                    rows["sp"].append(self._targets())
+                    if has_arrived(self.scenario, pos):
+                        stop_reason = "arrived"
+                        break
+                    if step % max(1, int(cfg.rates.control_hz * 5)) == 0 and step:
+                        self.progress(f"t = {step * cfg.rates.control_dt_s:.0f} s")
+                self.flight_t0 = flight_start
+            except (_Abort, SimError, OSError) as exc:
+                aborted = str(exc)
+                log.error("hil px4: %s", aborted)
+            finally:
+                self._stop_daemons()
+                cameras = side.stop()
+                board.close()
+        lateness.add_cameras(cameras)
+        flight = _flight_log(self.scenario, cfg.rates, rows, contacts, stop_reason)
+        return HilRun(
+            log=flight,
+            drones=[],
+            cameras=cameras,
+            lateness=lateness,
+            engage_s=engage_s,
+            flight_t0_px4=[0.0] * n,
+            harness_nice=self.harness_nice,
+            faults=None,
+            aborted=aborted,
+        )
+
+    def _root(self, stack: contextlib.ExitStack) -> Path:
+        if self.px4_root is not None:
+            return self.px4_root
+        tarball = tarball_from_env()
+        if tarball is None:
+            raise _Abort("PX4_SITL_TARBALL is not set")
+        folder = Path(tempfile.mkdtemp(prefix="px4-build-"))
+        stack.callback(shutil.rmtree, folder, True)
+        return unpack(tarball, folder)
+
+    def _start_daemon(self, drone: Px4Drone, sitl: Px4Sitl) -> None:
+        doc = daemon_document(
+            drone.setup,
+            drone.faces,
+            self.model_path,
+            f"udpin://127.0.0.1:{drone.px4.spec.offboard_port}",
+            drone.telemetry_endpoint,
+            drone.flights_dir,
+            self.config.daemon_overrides,
+            migration_point_global=drone.migration_point_global,
+        )
+        drone.config_path.write_text(toml_text(doc))
+        log_path = drone.setup.folder / "daemon.log"
+        drone.process = launch_daemon(drone.config_path, log_path, sitl.namespace.command)
+
+    def _engaged(self, engage_s: list[float | None], daemon_t0: float) -> bool:
+        for i, drone in enumerate(self.drones):
+            if engage_s[i] is None:
+                seen = [
+                    m.t_s for m in drone.gcs.mode_changes(daemon_t0) if m.mode is Px4Mode.OFFBOARD
+                ]
+                if seen:
+                    engage_s[i] = seen[0] - daemon_t0
+            if not drone.alive:
+                raise _Abort(
+                    f"{drone.setup.drone_id}'s daemon exited before the flight: "
+                    f"{drone.daemon_log_tail(3)}"
+                )
+        return all(e is not None for e in engage_s)
+
+    def _stop_daemons(self, timeout_s: float = 10.0) -> None:
+        """SIGTERM every daemon at once (each ends in PX4 Hold), wait, SIGKILL what is left."""
+        for drone in self.drones:
+            if drone.alive and drone.process is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(drone.process.pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        for drone in self.drones:
+            if drone.process is None:
+                continue
+            try:
+                drone.exit_code = drone.process.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                drone.process.kill()
+                drone.exit_code = drone.process.wait(5.0)
+
+    # -- results ---------------------------------------------------------------------------
+
+    def drone_rows(self, engage_s: list[float | None]) -> list[dict[str, Any]]:
+        """Per drone: engagement, PX4's modes (from its heartbeats), take-off, its flight log."""
+        t0 = self.flight_t0
+        rows = []
+        for drone, engaged in zip(self.drones, engage_s, strict=True):
+            changes = drone.gcs.mode_changes()
+            last = changes[-1].mode if changes else None
+            rows.append(
+                {
+                    "drone": drone.setup.drone_id,
+                    "engage_s_after_daemon_start": None if engaged is None else round(engaged, 2),
+                    "exit_code": drone.exit_code,
+                    "stopped_by_fault": None,
+                    "mode_history": [
+                        {
+                            "t_s": round(m.t_s - t0, 2),
+                            "mode": m.mode.name if m.mode else str(m.custom_mode),
+                            "reason": "PX4 heartbeat",
+                        }
+                        for m in changes
+                    ],
+                    "final_mode": last.name if last is not None else None,
+                    "ended_in_offboard": last is Px4Mode.OFFBOARD,
+                    "frames_sent": None,
+                    "frames_dropped": None,
+                    "camera_connections": None,
+                    "migration_point_global": drone.migration_point_global,
+                    "takeoff_s": None if drone.takeoff_s is None else round(drone.takeoff_s, 2),
+                    "px4_instance": drone.px4.spec.index,
+                    **flight_log_stats(drone.flights_dir),
+                }
+            )
+        return rows
+
+    def px4_summary(self) -> dict[str, Any]:
+        return {
+            "pose_rate_hz": POSE_RATE_HZ,
+            "pose_gap_max_ms": [round(g * 1e3, 1) for g in self.pose_gap_max_s],
+            "frame_check_m": [
+                None if c is None else {"horizontal": round(c[0], 3), "up": round(c[1], 3)}
+                for c in self.frame_check_m
+            ],
+            "world_origin": [
+                DEFAULT_ORIGIN.lat_deg,
+                DEFAULT_ORIGIN.lon_deg,
+                DEFAULT_ORIGIN.alt_amsl_m,
+            ],
+        }
+
+
+class _Abort(Exception):
+    """The flight cannot start or go on."""
+
+
+class _WorldClock:
+    """The world on the 100 Hz grid: every drone where its PX4 says, to the pose board."""
+
+    def __init__(self, swarm: Px4Swarm, world: World, board: PoseBoard, lateness: Lateness) -> None:
+        self.swarm, self.world, self.board, self.lateness = swarm, world, board, lateness
+        self.dt_s = swarm.config.rates.physics_dt_s
+        self.next_step = time.monotonic()
+        self.pose_late_s = swarm.config.late_physics_s + 1.0 / POSE_RATE_HZ
+        self.last = swarm._poses(self.next_step)
+
+    def advance_until(self, until: float) -> set[tuple[int, int]]:
+        touching: set[tuple[int, int]] = set()
+        while True:
+            now = time.monotonic()
+            touching |= self._run_due(now)
+            if now >= until:
+                return touching
+            time.sleep(max(0.0, min(self.next_step, until) - time.monotonic()))
+
+    def _run_due(self, now: float) -> set[tuple[int, int]]:
+        lat, late_s = self.lateness, self.swarm.config.late_physics_s
+        touching: set[tuple[int, int]] = set()
+        if self.next_step > now:
+            return touching
+        behind = now - self.next_step
+        missed = math.floor(behind / self.dt_s)  # steps not taken: one pose update covers them
+        lat.physics_steps += 1 + missed
+        stale = self.swarm._pose_age_s(now) > self.pose_late_s
+        lat.physics_late += (behind > late_s or stale) + missed
+        lat.physics_max_behind_s = max(lat.physics_max_behind_s, behind)
+        self.last = pos, _, q = self.swarm._poses(now)
+        self.board.write(pos, q)
+        if self.world.may_touch(pos):
+            touching.update(self.world.contacts(pos, q))
+        self.next_step += (1 + missed) * self.dt_s
+        return touching
+
+
+def write_px4_results(
+    swarm: Px4Swarm, run: HilRun, out_dir: Path, compare: FlightLog | None = None
+) -> dict[str, Any]:
+    """The run folder as `results.write_results` writes it, with PX4's side: per-drone rows from
+    PX4's heartbeats, pose gaps and the frame check in hil.json and report.md."""
+    extra = {"autopilot": "px4-sitl", "px4": swarm.px4_summary()}
+    doc = write_results(run, out_dir, compare, drones=swarm.drone_rows(run.engage_s), extra=extra)
+    px4 = doc["px4"]
+    lines = [
+        "## Real PX4",
+        "",
+        "Each drone: PX4 SITL (commander, navigator, EKF2, multicopter controllers) flying its own "
+        "SIH quadrotor, started at its spawn point's ground position, armed and taken off to the "
+        "spawn altitude by the harness's ground station before its daemon started; the daemon "
+        "got the goal as `migration_point_global`. A world step counts as late also when a "
+        f"drone's newest PX4 pose was older than {1e3 * swarm.config.late_physics_s:.0f} ms + "
+        "one pose period.",
+        "",
+        f"- longest gap between PX4 poses (ms, per drone): {px4['pose_gap_max_ms']}",
+        "- GLOBAL_POSITION_INT minus the world position from local NED after take-off (m; "
+        "the EKF origin's offset from the SIH start, GPS noise at initialisation): "
+        f"{px4['frame_check_m']}",
+        f"- take-off (s, per drone): {[d['takeoff_s'] for d in doc['drones']]}",
+        "",
+    ]
+    with (out_dir / "report.md").open("a") as report:
+        report.write("\n".join(lines))
+    return doc
