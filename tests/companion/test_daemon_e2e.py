@@ -41,6 +41,7 @@ from companion.health import HealthState
 from companion.policy import Policy
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
 from sim_harness.hil.camera_emulator import CameraEmulator
+from sim_harness.hil.drone import toml_text
 from sim_harness.hil.px4_logic import Px4Mode
 
 REPO = Path(__file__).resolve().parents[2]
@@ -105,20 +106,6 @@ def document(
         "telemetry": {"listen_endpoints": [f"tcp/127.0.0.1:{telemetry_port}"]},
         "daemon": {"failsafe_after_s": 5.0, **daemon},
     }
-
-
-def toml_text(doc: dict[str, Any], prefix: str = "") -> str:
-    """A small TOML writer for the documents above (tables, strings, numbers, lists)."""
-    scalars, tables = [], []
-    for key, value in doc.items():
-        if isinstance(value, dict):
-            tables.append((key, value))
-        else:
-            scalars.append(f"{key} = {json.dumps(value)}")
-    text = (f"[{prefix}]\n" if prefix and scalars else "") + "".join(s + "\n" for s in scalars)
-    for key, value in tables:
-        text += "\n" + toml_text(value, f"{prefix}.{key}" if prefix else key)
-    return text
 
 
 class ModelHook:
