@@ -303,6 +303,7 @@ class Px4Swarm:
                 late_capture_s=cfg.late_capture_s,
                 seed=cfg.seed,
                 nice=cfg.harness_nice,
+                renderer=cfg.renderer,
             )
         )
         sitl: Px4Sitl | None = None
@@ -386,6 +387,7 @@ class Px4Swarm:
             engage_s=engage_s,
             flight_t0_px4=[0.0] * n,
             harness_nice=self.harness_nice,
+            renderer=cfg.renderer,
             faults=None,
             aborted=aborted,
         )
@@ -549,6 +551,7 @@ def write_px4_results(
     doc = write_results(run, out_dir, compare, drones=swarm.drone_rows(run.engage_s), extra=extra)
     px4 = doc["px4"]
     lines = [
+        "",
         "## Real PX4",
         "",
         "Each drone: PX4 SITL (commander, navigator, EKF2, multicopter controllers) flying its own "

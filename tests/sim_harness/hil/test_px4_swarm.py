@@ -1,0 +1,59 @@
+"""The real-PX4 HIL harness's frames, without PX4: the goal handed to each daemon as a global
+point comes back, through the daemon's own conversion with its PX4's home, as the scenario's goal
+in that drone's local frame; PX4's pose reported on the GCS link lands at the right world point."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from companion.frames import quat_enu_flu_to_ned_frd, quat_from_yaw
+from companion.geo import GlobalPosition, HomePosition, global_to_local_enu
+from companion.param_check import BOARD_ONLY
+from sim_harness.hil.px4_gcs import PositionSample
+from sim_harness.hil.px4_swarm import Px4Swarm, shipped_params
+from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN
+from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
+from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
+
+
+def swarm(tmp_path: Path, n: int = 3) -> Px4Swarm:
+    scenario = build_scenario(ScenarioConfig(name="common", n_agents=n, seed=1011))
+    return Px4Swarm(scenario, SHIPPED_MODEL_PATH, tmp_path)
+
+
+def test_the_global_goal_is_each_drones_local_goal(tmp_path: Path) -> None:
+    hil = swarm(tmp_path)
+    for spec, setup in zip(hil._instances(), hil.setups, strict=True):
+        home = HomePosition(GlobalPosition(spec.home_lat_deg, spec.home_lon_deg, spec.home_alt_m))
+        point = hil._migration_global(setup.index)
+        assert point is not None
+        local = global_to_local_enu(GlobalPosition(*point), home)
+        expected = hil.scenario.migration_points[setup.index] - setup.home_world_enu
+        np.testing.assert_allclose(local, expected, atol=1e-3)
+        assert spec.home_alt_m == DEFAULT_ORIGIN.alt_amsl_m  # SIH starts on the ground
+
+
+def test_px4s_local_pose_is_placed_from_its_start_point(tmp_path: Path) -> None:
+    hil = swarm(tmp_path, n=2)
+    q_ned = quat_enu_flu_to_ned_frd(quat_from_yaw(0.3))
+    for _ in range(2):
+        gcs = SimpleNamespace(
+            position=lambda: PositionSample(1.0, 2.0, -1.0, -5.0, 0.5, 0.0, -0.1),  # N, E, D
+            attitude=(1.0, q_ned),
+        )
+        hil.drones.append(SimpleNamespace(gcs=gcs))  # type: ignore[arg-type]
+    pos, vel, q = hil._poses(now=1.01)
+    for i in range(2):
+        np.testing.assert_allclose(pos[i], hil.homes[i] + [-1.0, 2.0, 5.0])
+        np.testing.assert_allclose(vel[i], [0.0, 0.5, 0.1])
+        np.testing.assert_allclose(q[i], quat_from_yaw(0.3), atol=1e-12)
+    assert max(hil.pose_gap_max_s) <= 0.011
+
+
+def test_the_shipped_parameters_go_to_px4_without_board_only_names() -> None:
+    params = shipped_params()
+    assert params and not set(params) & set(BOARD_ONLY)
+    assert params["COM_OBL_RC_ACT"] == 5  # Hold on offboard loss, as the shipped file says
