@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from companion.camera.layout import FACE_NAMES, split
 from sim_harness.errors import SimError
+from sim_harness.sim.renderers import DEFAULT_RENDERER
 
 FloatArray = NDArray[np.float64]
 _POSE = 7  # x, y, z, qw, qx, qy, qz
@@ -89,6 +90,7 @@ class CameraSideConfig:
     late_capture_s: float = 0.02
     seed: int = 0
     nice: int = 0  # the process's niceness, where the OS allows
+    renderer: str = DEFAULT_RENDERER
 
 
 @dataclass
@@ -105,7 +107,7 @@ class CaptureStats:
 def _camera_main(config: CameraSideConfig, conn: Connection) -> None:  # pragma: no cover
     """The child process: own world, renderer and cameras; captures on the wall clock."""
     from sim_harness.hil.camera_emulator import CameraEmulator
-    from sim_harness.sim.render import PyBulletRenderer
+    from sim_harness.sim.renderers import make_renderer
     from sim_harness.sim.world import World
 
     with contextlib.suppress(PermissionError):  # before the camera threads: they inherit it
@@ -114,7 +116,7 @@ def _camera_main(config: CameraSideConfig, conn: Connection) -> None:  # pragma:
     n = len(config.folders)
     board = PoseBoard(n, config.board_name)
     cameras = [CameraEmulator(f / "dev", source=None).start() for f in config.folders]
-    renderer = PyBulletRenderer()
+    renderer = make_renderer(config.renderer)
     rng = np.random.default_rng(config.seed)
     stats = CaptureStats()
     period = 1.0 / config.rate_hz

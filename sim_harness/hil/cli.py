@@ -21,6 +21,7 @@ from companion.flocking import FlockingParams
 from sim_harness.experiments.suites import SHIPPED_LOW_PASS_HZ
 from sim_harness.hil.plans import PLANS_DIR
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
+from sim_harness.sim.renderers import DEFAULT_RENDERER, add_renderer_option, make_renderer
 from sim_harness.sim.scenarios import SCENARIOS, ScenarioConfig, build_scenario
 
 
@@ -60,6 +61,7 @@ def add_hil_commands(sub: Any) -> None:
         help="override a key of every drone's companion.toml (TOML value), e.g. "
         "daemon.tick_on_frames=false; repeatable",
     )
+    add_renderer_option(p)
     p.set_defaults(handler=_hil)
 
 
@@ -113,7 +115,17 @@ def _hil(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise ConfigError(f"out: cannot create {out}: {exc.strerror}") from exc
     overrides = daemon_overrides(args.daemon_set)
-    doc = fly_hil(config, args.model, out, duration, plan, args.compare, overrides, args.autopilot)
+    doc = fly_hil(
+        config,
+        args.model,
+        out,
+        duration,
+        plan,
+        args.compare,
+        overrides,
+        args.autopilot,
+        args.renderer,
+    )
     s = doc["summary"]
     print(
         f"{'VALID' if doc['valid'] else 'INVALID'}: arrived {s['arrived']}, "
@@ -139,6 +151,7 @@ def fly_hil(
     compare: bool = False,
     overrides: dict[str, dict[str, Any]] | None = None,
     autopilot: str = "emulator",
+    renderer: str = DEFAULT_RENDERER,
 ) -> dict[str, Any]:
     """Fly the HIL swarm (and the in-process CNN if `compare`), write `out`, return hil.json.
 
@@ -152,24 +165,27 @@ def fly_hil(
     def say(message: str) -> None:
         print(f"hil: {message}", flush=True)
 
-    hil = HilConfig(daemon_overrides=overrides or {})
+    hil = HilConfig(daemon_overrides=overrides or {}, renderer=renderer)
     if autopilot == "px4-sitl":
         from sim_harness.hil.px4_swarm import Px4Swarm, write_px4_results
 
         swarm = Px4Swarm(scenario, model, out, hil, progress=say)
         px4_run = swarm.run(duration_s)
-        ref = fly_in_process(config, model, duration_s) if compare else None
+        ref = fly_in_process(config, model, duration_s, renderer) if compare else None
         return write_px4_results(swarm, px4_run, out, ref)
     run = HilSwarm(scenario, model, out, hil, faults=plan, progress=say).run(duration_s)
     reference = None
     if compare:
         say("flying the in-process CNN on the same seed")
-        reference = fly_in_process(config, model, duration_s)
+        reference = fly_in_process(config, model, duration_s, renderer)
     return write_results(run, out, reference)
 
 
-def fly_in_process(config: ScenarioConfig, model: Path, duration_s: float) -> Any:
-    """The same scenario flown by the in-process CNN controller (shipped low-pass)."""
+def fly_in_process(
+    config: ScenarioConfig, model: Path, duration_s: float, renderer: str = DEFAULT_RENDERER
+) -> Any:
+    """The same scenario flown by the in-process CNN controller (shipped low-pass), with the
+    same renderer as the HIL cameras."""
     import dataclasses
 
     from sim_harness.experiments.vision_controller import (
@@ -186,6 +202,6 @@ def fly_in_process(config: ScenarioConfig, model: Path, duration_s: float) -> An
         law = VisionControlConfig.from_flocking(config.flocking, SHIPPED_LOW_PASS_HZ)
         controller = VisionController(policy, law, rates.control_dt_s)
         scenario = build_scenario(dataclasses.replace(config, duration_s=duration_s))
-        return fly(scenario, controller, rates)
+        return fly(scenario, controller, rates, renderer=make_renderer(renderer))
     finally:
         policy.close()

@@ -135,6 +135,7 @@ def write_results(
         "summary": summary,
         "lateness": run.lateness.summary(),
         "priorities": {"harness_nice": run.harness_nice, "daemon_nice": unit_nice()},
+        "renderer": run.renderer,
         "drones": drones,
     }
     if run.faults is not None:
@@ -271,7 +272,7 @@ def report_text(doc: dict[str, Any]) -> str:
         f"- threshold: {100 * lat['threshold_fraction']:.1f} % for each; this run is "
         f"{'inside' if lat['valid'] else 'OUTSIDE'} it.",
         f"- priorities: harness nice {doc['priorities']['harness_nice']}, daemons nice "
-        f"{doc['priorities']['daemon_nice']} (the unit's `Nice=`)",
+        f"{doc['priorities']['daemon_nice']} (the unit's `Nice=`); renderer {doc['renderer']}",
         "",
         "## Flight",
         "",

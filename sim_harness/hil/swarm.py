@@ -52,6 +52,7 @@ from sim_harness.hil.lateness import Lateness
 from sim_harness.hil.px4_logic import Px4Mode
 from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, WorldVehicle, home_of, states_ned
 from sim_harness.sim import metrics
+from sim_harness.sim.renderers import DEFAULT_RENDERER
 from sim_harness.sim.rollout import FlightLog, has_arrived
 from sim_harness.sim.scenarios import Scenario
 from sim_harness.sim.vehicle import VehicleModel, VehicleParams
@@ -86,6 +87,7 @@ class HilConfig:
     # The harness stands in for hardware that, on a drone, never competes with the daemon for
     # CPU (cameras, autopilot): it runs above the daemons' Nice=-5 where the OS allows (root).
     harness_nice: int = -10
+    renderer: str = DEFAULT_RENDERER  # sim_harness.sim.renderers: what draws the camera images
 
 
 @dataclass
@@ -99,6 +101,7 @@ class HilRun:
     engage_s: list[float | None]  # per drone: seconds from daemon start to OFFBOARD
     flight_t0_px4: list[float]  # per drone: its PX4 emulator's clock at the flight's t = 0
     harness_nice: int | None
+    renderer: str
     faults: FaultRunner | None
     aborted: str | None = None  # why the flight could not start
 
@@ -174,6 +177,7 @@ class HilSwarm:
                 late_capture_s=cfg.late_capture_s,
                 seed=cfg.seed,
                 nice=cfg.harness_nice,
+                renderer=cfg.renderer,
             )
         )
         self.camera_pid = side.pid
@@ -269,6 +273,7 @@ class HilSwarm:
             engage_s=engage_s,
             flight_t0_px4=flight_t0,
             harness_nice=self.harness_nice,
+            renderer=cfg.renderer,
             faults=faults,
             aborted=aborted,
         )
