@@ -26,6 +26,7 @@ import numpy as np
 
 from sim_harness.hil.swarm import HilConfig, HilSwarm
 from sim_harness.learning.shipped import PROJECT_ROOT, SHIPPED_MODEL_PATH
+from sim_harness.sim.renderers import add_renderer_option
 from sim_harness.sim.rollout import summarize
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
 
@@ -80,10 +81,11 @@ class Sampler:
         }
 
 
-def fly(n: int, seconds: float, seed: int, out: Path) -> dict[str, Any]:
+def fly(n: int, seconds: float, seed: int, out: Path, renderer: str) -> dict[str, Any]:
     config = ScenarioConfig(name="common", n_agents=n, seed=seed, duration_s=seconds)
     sampler = Sampler()
-    swarm = HilSwarm(build_scenario(config), SHIPPED_MODEL_PATH, out, HilConfig(), on_phase=sampler)
+    hil = HilConfig(renderer=renderer)
+    swarm = HilSwarm(build_scenario(config), SHIPPED_MODEL_PATH, out, hil, on_phase=sampler)
     load_before = round(os.getloadavg()[0], 2)
     run = swarm.run(seconds)
     from sim_harness.hil.results import flight_log_stats
@@ -95,6 +97,7 @@ def fly(n: int, seconds: float, seed: int, out: Path) -> dict[str, Any]:
     return {
         "agents": n,
         "seed": seed,
+        "renderer": renderer,
         "seconds_flown": round(float(run.log.time_s[-1]), 1),
         "aborted": run.aborted,
         "load_average_1min_before_after": [load_before, round(os.getloadavg()[0], 2)],
@@ -135,22 +138,24 @@ def main() -> None:
         "--scan", default="3,6,9,12", help="N values for the real-time scan ('' skips)"
     )
     parser.add_argument("--scan-seconds", type=float, default=20.0)
+    add_renderer_option(parser)
     parser.add_argument(
         "--out", type=Path, default=PROJECT_ROOT / "benchmarks/results/hil_swarm.json"
     )
     args = parser.parse_args()
+    args.out = args.out or PROJECT_ROOT / f"benchmarks/results/hil_swarm_{args.renderer}.json"
     tmp = Path(tempfile.mkdtemp(prefix="hil-bench-"))
     results: dict[str, Any] = {
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
         "command": "python benchmarks/hil_swarm.py "
         + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out"),
     }
-    main_run = fly(args.agents, args.seconds, args.seed, tmp / f"n{args.agents}")
+    main_run = fly(args.agents, args.seconds, args.seed, tmp / f"n{args.agents}", args.renderer)
     results["main"] = main_run
     print(json.dumps(main_run, indent=1), flush=True)
     scan = []
     for n in [int(x) for x in args.scan.split(",") if x.strip()]:
-        entry = fly(n, args.scan_seconds, args.seed, tmp / f"scan{n}")
+        entry = fly(n, args.scan_seconds, args.seed, tmp / f"scan{n}", args.renderer)
         lat = entry["lateness"]
         entry["real_time"] = (
             lat["captures_late_fraction"] < 0.01 and lat["frames_dropped_fraction"] < 0.01

@@ -19,6 +19,7 @@ from typing import Any
 
 from sim_harness.hil.cli import fly_hil
 from sim_harness.learning.shipped import PROJECT_ROOT, SHIPPED_MODEL_PATH
+from sim_harness.sim.renderers import add_renderer_option
 from sim_harness.sim.scenarios import ScenarioConfig
 
 
@@ -34,6 +35,7 @@ def main() -> None:
     parser.add_argument("--seeds", default="1000-1004")
     parser.add_argument("--agents", type=int, default=9)
     parser.add_argument("--seconds", type=float, default=60.0)
+    add_renderer_option(parser)
     parser.add_argument(
         "--out", type=Path, default=PROJECT_ROOT / "benchmarks/results/hil_bar.json"
     )
@@ -45,7 +47,14 @@ def main() -> None:
             name="common", n_agents=args.agents, seed=seed, duration_s=args.seconds
         )
         load = round(os.getloadavg()[0], 2)
-        doc = fly_hil(config, SHIPPED_MODEL_PATH, tmp / f"s{seed}", args.seconds, compare=True)
+        doc = fly_hil(
+            config,
+            SHIPPED_MODEL_PATH,
+            tmp / f"s{seed}",
+            args.seconds,
+            compare=True,
+            renderer=args.renderer,
+        )
         hil, ref = doc["summary"], doc["compare"]["in_process"]
         row = {
             "seed": seed,
@@ -88,7 +97,8 @@ def main() -> None:
         }
     results = {
         "command": f"python benchmarks/hil_vs_inprocess.py --seeds {args.seeds} "
-        f"--agents {args.agents} --seconds {args.seconds:g}",
+        f"--agents {args.agents} --seconds {args.seconds:g} --renderer {args.renderer}",
+        "renderer": args.renderer,
         "spread": spread,
         "runs": rows,
         "bar": {
