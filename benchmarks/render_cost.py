@@ -3,10 +3,11 @@
     python benchmarks/render_cost.py [--agents 3 9 30 100] [--repeats 5]
 
 The paper's common-goal spawn for N agents (its density kept as N grows), small random tilts, and
-every agent's strip rendered once per repeat by `PyBulletRenderer` and by `RaycastRenderer`.
+every agent's strip rendered once per repeat by `PyBulletRenderer` and by `RaycastRenderer` (its
+numba kernels, and its numpy path).
 Reports wall and CPU (process) milliseconds per step, medians over repeats (pybullet's N = 100 step
 takes seconds: at most 2 repeats), their ratio, and the raycaster's split between the environment
-(ground and sky, shared with pybullet's path) and the drones. Writes JSON (default
+(ground and sky; numpy, as pybullet's path) and the drones. Writes JSON (default
 benchmarks/results/render_cost.json).
 """
 
@@ -61,12 +62,13 @@ def main() -> None:
         with World(n) as world:
             renderers: dict[str, Renderer] = {
                 "pybullet": PyBulletRenderer(),
-                "raycast": RaycastRenderer(),
+                "raycast": RaycastRenderer(),  # compiled loops when numba is installed
+                "raycast_numpy": RaycastRenderer(compiled=False),
             }
             for name, renderer in renderers.items():
-                reps = args.repeats if name == "raycast" or n <= 30 else min(args.repeats, 2)
+                reps = args.repeats if name != "pybullet" or n <= 30 else min(args.repeats, 2)
                 row[name] = timed(renderer.render, (world, pos, q), reps)
-            raycast = RaycastRenderer()
+            raycast = RaycastRenderer(compiled=False)
             eyes, _, _ = camera_poses(pos, q)
             rot = quat_to_rotmat(q)
             row["raycast_environment"] = timed(raycast.environment.shade, (eyes, rot), args.repeats)
@@ -76,7 +78,8 @@ def main() -> None:
         print(
             f"N={n:4d}  pybullet {row['pybullet']['wall_ms']:8.1f} ms"
             f" (cpu {row['pybullet']['cpu_ms']:7.1f})  raycast {row['raycast']['wall_ms']:7.1f} ms"
-            f" (cpu {row['raycast']['cpu_ms']:6.1f}, environment"
+            f" (cpu {row['raycast']['cpu_ms']:6.1f}; numpy {row['raycast_numpy']['cpu_ms']:6.1f};"
+            " environment"
             f" {row['raycast_environment']['cpu_ms']:5.1f})  x{row['speedup_cpu']:.1f} (cpu)",
             flush=True,
         )

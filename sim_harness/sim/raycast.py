@@ -37,6 +37,11 @@ from sim_harness.sim.render import camera_poses
 from sim_harness.sim.scene import Environment, SceneSpec
 from sim_harness.sim.world import World
 
+try:  # compiled loops when numba is installed; the numpy path otherwise
+    from sim_harness.sim import raycast_kernels as _kernels
+except ImportError:  # pragma: no cover
+    _kernels = None  # type: ignore[assignment]
+
 FloatArray = NDArray[np.float64]
 _Rim = tuple[FloatArray, FloatArray, FloatArray, FloatArray]  # normals and points of a side's rim
 
@@ -231,7 +236,9 @@ class RaycastRenderer:
         far_m: float = 120.0,
         scene: SceneSpec | None = None,
         sample_offset_px: tuple[float, float] = TINYRENDERER_SAMPLE_PX,
+        compiled: bool | None = None,
     ) -> None:
+        """`compiled`: use the numba kernels (None: when numba is installed)."""
         self.near_m = near_m
         self.far_m = far_m
         self.environment = Environment(scene or SceneSpec())
@@ -239,6 +246,9 @@ class RaycastRenderer:
         self._rays_cam = pixel_rays_camera(sample_offset_px).reshape(-1, 3)
         self._bases = _face_bases()
         self._solid: tuple[QuadGeometry, DroneSolid] | None = None
+        if compiled and _kernels is None:
+            raise ImportError("RaycastRenderer(compiled=True) needs numba: pip install numba")
+        self.compiled = _kernels is not None if compiled is None else compiled
 
     def solid(self, geometry: QuadGeometry) -> DroneSolid:
         if self._solid is None or self._solid[0] != geometry:
@@ -257,7 +267,10 @@ class RaycastRenderer:
         rot = quat_to_rotmat(np.asarray(q_world_body, dtype=np.float64))
         chosen = np.arange(len(pos)) if agents is None else np.asarray(agents, dtype=np.intp)
         eyes, _, _ = camera_poses(pos, np.asarray(q_world_body, dtype=np.float64))
-        out = self.environment.shade(eyes[chosen], rot[chosen])
+        if self.compiled:
+            out = _kernels.environment(self.environment, eyes[chosen], rot[chosen])
+        else:
+            out = self.environment.shade(eyes[chosen], rot[chosen])
         flat = out.reshape(-1)
         pixel, gray = self.drone_pixels(pos, rot, chosen, self.solid(world.geometry))
         flat[pixel] = gray
@@ -302,18 +315,31 @@ class RaycastRenderer:
         if len(kk) == 0:
             return np.zeros(0, dtype=np.intp), np.zeros(0)
         centre = cam[kk, ff, jj]  # (T, 3)
-        which, pix = _sphere_pixels(
-            centre,
-            np.stack([col0[kk, ff, jj], col1[kk, ff, jj], row0[kk, ff, jj], row1[kk, ff, jj]]),
-            r,
-            self.sample_offset_px,
-        )
-        ray = self._rays_cam[pix]
+        boxes = np.stack([col0[kk, ff, jj], col1[kk, ff, jj], row0[kk, ff, jj], row1[kk, ff, jj]])
         # The ray in the observed drone's body frame: R_j^T B_kf ray_cam, from R_j^T (eye - p_j).
         rot_j = rot[jj]  # (T, 3, 3)
-        cam_to_body = np.einsum("tij,tic->tjc", rot_j, basis[kk, ff])[which]  # (M, 3, 3)
-        o = np.einsum("tij,ti->tj", rot_j, -rel[kk, ff, jj])[which]  # (M, 3)
-        d = (cam_to_body * ray[:, None, :]).sum(axis=2)
+        cam_to_body = np.einsum("tij,tic->tjc", rot_j, basis[kk, ff])  # (T, 3, 3)
+        origin = np.einsum("tij,ti->tj", rot_j, -rel[kk, ff, jj])  # (T, 3)
+        if self.compiled:
+            n_px = len(chosen) * len(FACES) * size * size
+            depth = np.full(n_px, np.inf)
+            owner = np.full(n_px, -1, dtype=np.intp)
+            part, plane = np.empty(n_px, dtype=np.intp), np.empty(n_px, dtype=np.intp)
+            _kernels.cast_drones(
+                centre, boxes, cam_to_body, origin, (kk * len(FACES) + ff) * size * size,
+                self._rays_cam, r, *self.sample_offset_px, self.near_m, self.far_m,
+                solid.normal, solid.offset, np.any(solid.normal != 0.0, axis=2).sum(axis=1),
+                solid.part_centre, solid.part_radius_m, depth, owner, part, plane,
+            )  # fmt: skip
+            flat = np.flatnonzero(owner >= 0)
+            t = owner[flat]
+            d = np.einsum("mjc,mc->mj", cam_to_body[t], self._rays_cam[flat % (size * size)])
+            hit_body = origin[t] + depth[flat, None] * d
+            return flat, self._shade(hit_body, part[flat], plane[flat], rot[jj[t]], solid)
+        which, pix = _sphere_pixels(centre, boxes, r, self.sample_offset_px)
+        ray = self._rays_cam[pix]
+        o = origin[which]
+        d = (cam_to_body[which] * ray[:, None, :]).sum(axis=2)
         t_hit, part, plane = self._intersect(o, d, solid)
         cos_axis = self._rays_cam[pix, 2]
         depth = t_hit * cos_axis

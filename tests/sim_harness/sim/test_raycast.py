@@ -72,15 +72,36 @@ def test_drone_below_covers_its_top_view_area(world, below_m) -> None:
     assert int(mask.sum()) == pytest.approx(area / pixel_side**2, rel=0.2)
 
 
-def test_own_body_is_hidden_and_an_empty_sky_is_the_environment(world) -> None:
-    renderer = RaycastRenderer()
+@pytest.mark.parametrize("compiled", [False, True])
+def test_own_body_is_hidden_and_an_empty_sky_is_the_environment(world, compiled) -> None:
+    if compiled:
+        pytest.importorskip("numba")
+    renderer = RaycastRenderer(compiled=compiled)
     q = np.stack([quat_from_euler_zyx(0.3, -0.2, 1.0), LEVEL])
     pos = np.stack([OBSERVER, FAR_AWAY])
-    image = renderer.render(world, pos, q, [0])[0]
+    image = split(renderer.render(world, pos, q, [0])[0]).astype(int)
     eyes, _, _ = camera_poses(pos[:1], q[:1])
-    env = renderer.environment.shade(eyes, quat_to_rotmat(q[:1]))
-    expected = np.clip(np.rint(env), 0, 255).astype(np.uint8)
-    np.testing.assert_array_equal(split(image), expected[0])
+    env = np.rint(renderer.environment.shade(eyes, quat_to_rotmat(q[:1])))[0]
+    # The compiled environment rounds a few pixels in a thousand to the next gray level.
+    assert np.abs(image - env).max() <= (1 if compiled else 0)
+    assert (image != env).mean() < 0.01
+
+
+def test_compiled_and_numpy_paths_draw_the_same_drones() -> None:
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(7)
+    with World(12) as w12:
+        pos = OBSERVER + rng.uniform(-3, 3, (12, 3))
+        q = np.stack([quat_from_euler_zyx(*rng.uniform(-0.5, 0.5, 3)) for _ in range(12)])
+        rot = quat_to_rotmat(q)
+        chosen = np.arange(12)
+        solid = drone_solid(w12.geometry)
+        fast = RaycastRenderer(compiled=True).drone_pixels(pos, rot, chosen, solid)
+        slow = RaycastRenderer(compiled=False).drone_pixels(pos, rot, chosen, solid)
+        order = np.argsort(slow[0])
+        np.testing.assert_array_equal(np.sort(fast[0]), slow[0][order])
+        np.testing.assert_allclose(fast[1][np.argsort(fast[0])], slow[1][order], atol=1e-9)
+        assert len(fast[0]) > 500
 
 
 def test_deterministic_and_batched_equals_one_by_one(world) -> None:
