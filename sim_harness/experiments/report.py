@@ -311,6 +311,7 @@ def _write_json(
         "model": {"path": str(cfg.model_path), "sha256": result.model_sha256},
         "seeds": list(cfg.seeds),
         "low_pass_cutoff_hz": cfg.low_pass_cutoff_hz,
+        "renderer": cfg.renderer,
         "duration_s": cfg.duration_s,
         "rates": {"physics_hz": cfg.rates.physics_hz, "control_hz": cfg.rates.control_hz},
         "wall_time_s": result.wall_time_s,
