@@ -139,9 +139,7 @@ def main() -> None:
     )
     parser.add_argument("--scan-seconds", type=float, default=20.0)
     add_renderer_option(parser)
-    parser.add_argument(
-        "--out", type=Path, default=PROJECT_ROOT / "benchmarks/results/hil_swarm.json"
-    )
+    parser.add_argument("--out", type=Path, default=None, help="default: hil_swarm_<renderer>")
     args = parser.parse_args()
     args.out = args.out or PROJECT_ROOT / f"benchmarks/results/hil_swarm_{args.renderer}.json"
     tmp = Path(tempfile.mkdtemp(prefix="hil-bench-"))
