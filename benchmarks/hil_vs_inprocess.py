@@ -5,7 +5,7 @@
 For each seed: `swarm-sim hil --compare` (the daemons, then the in-process CNN on the same seed).
 Reports per seed arrival, closest pair, order and speed for both, whether each HIL run was valid
 (the harness kept up with real time), and whether the HIL arrival time and closest pair fall
-inside the spread (min..max) of the in-process flights. JSON: benchmarks/results/hil_bar.json.
+inside the spread (min..max) of the in-process flights. JSON: benchmarks/results/hil_bar_<renderer>.json.
 """
 
 from __future__ import annotations
@@ -36,10 +36,9 @@ def main() -> None:
     parser.add_argument("--agents", type=int, default=9)
     parser.add_argument("--seconds", type=float, default=60.0)
     add_renderer_option(parser)
-    parser.add_argument(
-        "--out", type=Path, default=PROJECT_ROOT / "benchmarks/results/hil_bar.json"
-    )
+    parser.add_argument("--out", type=Path, default=None, help="default: hil_bar_<renderer>")
     args = parser.parse_args()
+    args.out = args.out or PROJECT_ROOT / f"benchmarks/results/hil_bar_{args.renderer}.json"
     tmp = Path(tempfile.mkdtemp(prefix="hil-bar-"))
     rows: list[dict[str, Any]] = []
     for seed in seed_list(args.seeds):
