@@ -5,7 +5,8 @@
 For each seed: `swarm-sim hil --compare` (the daemons, then the in-process CNN on the same seed).
 Reports per seed arrival, closest pair, order and speed for both, whether each HIL run was valid
 (the harness kept up with real time), and whether the HIL arrival time and closest pair fall
-inside the spread (min..max) of the in-process flights. JSON: benchmarks/results/hil_bar_<renderer>.json.
+inside the spread (min..max) of the in-process flights.
+JSON: benchmarks/results/hil_bar_<renderer>.json.
 """
 
 from __future__ import annotations
