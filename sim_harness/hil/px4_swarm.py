@@ -14,15 +14,15 @@ contacts are checked in the world) and, as a pilot would, arms each vehicle and 
 its spawn altitude before the daemons start.
 
 One global frame: the world's origin is `DEFAULT_ORIGIN` on the ground; drone i's SIH starts at
-its spawn point's ground position (`home_of`), which becomes its PX4's home and EKF origin. Its
-world position is that point plus its local NED position in ENU (a flat-earth frame, like the
-daemon's conversion). GLOBAL_POSITION_INT is compared with it once after take-off
-(`frame_check_m`): the EKF origin is set from a noisy GPS fix, some decimetres off the SIH start,
-so the local position (which starts at zero where the vehicle really stood) places the drone
-better than the global one. The goal
-reaches each daemon as an operator gives it in the field: `[control] migration_point_global`
-(lat, lon, alt AMSL of the scenario's migration point), which the daemon converts with the home
-its PX4 reports.
+its spawn point's ground position (`home_of`), which becomes its PX4's home and EKF origin. Each
+drone is placed where SIH's simulated vehicle is (HIL_STATE_QUATERNION, which PX4 streams on the
+GCS link: position in WGS-84, converted to the world ENU frame flat-earth from the world origin,
+as the daemon converts its goal): the physical vehicle, as the cameras of the others would see it.
+PX4's own estimate (LOCAL_POSITION_NED from the start point) is decimetres off it (simulated GPS
+noise, `estimate_error_max_m`); it is the fallback where HIL_STATE_QUATERNION does not arrive.
+The goal reaches each daemon as an operator gives it in the field: `[control]
+migration_point_global` (lat, lon, alt AMSL of the scenario's migration point), which the daemon
+converts with the home its PX4 reports.
 
 Timing: the world loop runs on the 100 Hz physics grid, but the physics is PX4's; a world step is
 *late* when the loop ran more than `late_physics_s` behind the grid or a drone's newest PX4 pose
@@ -89,20 +89,53 @@ POSE_RATE_HZ = 50.0  # LOCAL_POSITION_NED and ATTITUDE_QUATERNION on the GCS lin
 TARGET_RATE_HZ = 10.0  # POSITION_TARGET_LOCAL_NED: what PX4 flies (the flight log's setpoint)
 TAKEOFF_TIMEOUT_S = 60.0
 IDENTITY_Q = np.array([1.0, 0.0, 0.0, 0.0])
+ORIGIN = GlobalPosition(DEFAULT_ORIGIN.lat_deg, DEFAULT_ORIGIN.lon_deg, DEFAULT_ORIGIN.alt_amsl_m)
+# The GCS link's streams: SIH's vehicle at the pose rate, PX4's estimate and target for the log,
+# the rest PX4 streams at 50 Hz slowed down (parsing them costs the harness's interpreter).
+STREAMS_HZ = {
+    mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION: POSE_RATE_HZ,
+    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 25.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 25.0,
+    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: TARGET_RATE_HZ,
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: 1.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: 1.0,
+    mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: 1.0,
+}
+
+
+@dataclass(frozen=True)
+class TruthSample:
+    """HIL_STATE_QUATERNION: SIH's simulated vehicle (receive time; WGS-84, NED m/s, NED<-FRD)."""
+
+    t_s: float
+    position: GlobalPosition
+    vel_ned_mps: FloatArray
+    q_ned_frd: FloatArray
 
 
 class PoseStation(GroundStation):
-    """A ground station that also keeps PX4's latest ATTITUDE_QUATERNION (NED <- FRD)."""
+    """A ground station that also keeps PX4's latest ATTITUDE_QUATERNION (NED <- FRD, the
+    estimate) and HIL_STATE_QUATERNION (SIH's simulated vehicle, the truth)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.attitude: tuple[float, FloatArray] | None = None  # receive time, q (w, x, y, z)
+        self.truth: TruthSample | None = None
 
     def _on_message(self, msg: Any, now: float) -> None:
-        if msg.get_type() == "ATTITUDE_QUATERNION":
+        kind = msg.get_type()
+        if kind == "ATTITUDE_QUATERNION":
             self.attitude = (now, np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=np.float64))
-            return
-        super()._on_message(msg, now)
+        elif kind == "HIL_STATE_QUATERNION":
+            self.truth = TruthSample(
+                now,
+                GlobalPosition(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3),
+                np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64) * 0.01,
+                np.asarray(msg.attitude_quaternion, dtype=np.float64),
+            )
+        else:
+            super()._on_message(msg, now)
 
     def stream(self, message_id: int, rate_hz: float) -> None:
         """SET_MESSAGE_INTERVAL on this link (PX4's GCS link streams at its normal-mode rates)."""
@@ -188,6 +221,7 @@ class Px4Swarm:
         self.harness_nice: int | None = None
         self.pose_gap_max_s = [0.0] * n
         self.frame_check_m: list[tuple[float, float] | None] = [None] * n
+        self.estimate_error_max_m = [0.0] * n  # PX4's horizontal estimate vs SIH's vehicle
         self.flight_t0 = 0.0  # monotonic time of the flight's t = 0
 
     # -- set-up ----------------------------------------------------------------------------
@@ -229,10 +263,8 @@ class Px4Swarm:
             raise _Abort(f"take-off failed: {errors[0]}")
 
     def _check_frame(self) -> None:
-        """Each drone's world position from its local NED against GLOBAL_POSITION_INT (m)."""
-        origin = GlobalPosition(
-            DEFAULT_ORIGIN.lat_deg, DEFAULT_ORIGIN.lon_deg, DEFAULT_ORIGIN.alt_amsl_m
-        )
+        """PX4's GLOBAL_POSITION_INT against the world position (SIH's vehicle), per drone (m)."""
+        origin = ORIGIN
         pos, _, _ = self._poses(time.monotonic())
         for i, drone in enumerate(self.drones):
             gp = drone.gcs.global_position
@@ -245,27 +277,42 @@ class Px4Swarm:
     # -- poses -----------------------------------------------------------------------------
 
     def _poses(self, now: float) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """World ENU positions, velocities (N, 3) and attitudes (N, 4) from every PX4's latest."""
+        """World ENU positions, velocities (N, 3) and attitudes (N, 4) of every drone: SIH's
+        simulated vehicle (HIL_STATE_QUATERNION) where PX4 sends it, else PX4's estimate
+        (LOCAL_POSITION_NED from the start point, ATTITUDE_QUATERNION)."""
         n = self.scenario.n_agents
         pos = self.scenario.initial_pos_world_enu.copy()
         vel = np.zeros((n, 3))
         q = np.tile(IDENTITY_Q, (n, 1))
         for i, drone in enumerate(self.drones):
-            sample = drone.gcs.position()
+            sample, truth = drone.gcs.position(), drone.gcs.truth
+            estimate = None
             if sample is not None:
-                local = ned_to_enu(np.array([sample.x, sample.y, sample.z]))
-                pos[i] = self.homes[i] + local
+                estimate = self.homes[i] + ned_to_enu(np.array([sample.x, sample.y, sample.z]))
+                pos[i] = estimate
                 vel[i] = ned_to_enu(np.array([sample.vx, sample.vy, sample.vz]))
-                self.pose_gap_max_s[i] = max(self.pose_gap_max_s[i], now - sample.t_s)
-            attitude = drone.gcs.attitude
-            if attitude is not None and np.all(np.isfinite(attitude[1])):
-                q[i] = quat_ned_frd_to_enu_flu(attitude[1])
+                attitude = drone.gcs.attitude
+                if attitude is not None and np.all(np.isfinite(attitude[1])):
+                    q[i] = quat_ned_frd_to_enu_flu(attitude[1])
+            if truth is not None:
+                pos[i] = enu_offset_m(truth.position, ORIGIN)
+                vel[i] = ned_to_enu(truth.vel_ned_mps)
+                if np.all(np.isfinite(truth.q_ned_frd)) and np.linalg.norm(truth.q_ned_frd) > 0.5:
+                    q[i] = quat_ned_frd_to_enu_flu(truth.q_ned_frd)
+                if estimate is not None:
+                    error = float(np.linalg.norm(estimate[:2] - pos[i, :2]))
+                    self.estimate_error_max_m[i] = max(self.estimate_error_max_m[i], error)
+            newest = truth.t_s if truth is not None else None if sample is None else sample.t_s
+            if newest is not None:
+                self.pose_gap_max_s[i] = max(self.pose_gap_max_s[i], now - newest)
         return pos, vel, q
 
     def _pose_age_s(self, now: float) -> float:
-        ages = [
-            now - s.t_s if (s := d.gcs.position()) is not None else math.inf for d in self.drones
-        ]
+        ages = []
+        for drone in self.drones:
+            truth, sample = drone.gcs.truth, drone.gcs.position()
+            newest = truth.t_s if truth is not None else None if sample is None else sample.t_s
+            ages.append(math.inf if newest is None else now - newest)
         return max(ages, default=0.0)
 
     def _targets(self) -> FloatArray:
@@ -326,11 +373,8 @@ class Px4Swarm:
                     stack.callback(gcs.stop)
                 for drone in self.drones:
                     drone.gcs.wait_ready(TAKEOFF_TIMEOUT_S)
-                    drone.gcs.stream(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, POSE_RATE_HZ)
-                    drone.gcs.stream(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, POSE_RATE_HZ)
-                    drone.gcs.stream(
-                        mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED, TARGET_RATE_HZ
-                    )
+                    for message_id, rate_hz in STREAMS_HZ.items():
+                        drone.gcs.stream(message_id, rate_hz)
                 self.progress("PX4s ready: arming and taking off to the spawn altitudes")
                 self._take_off()
                 self._check_frame()
@@ -488,6 +532,7 @@ class Px4Swarm:
         return {
             "pose_rate_hz": POSE_RATE_HZ,
             "pose_gap_max_ms": [round(g * 1e3, 1) for g in self.pose_gap_max_s],
+            "estimate_error_max_m": [round(e, 3) for e in self.estimate_error_max_m],
             "frame_check_m": [
                 None if c is None else {"horizontal": round(c[0], 3), "up": round(c[1], 3)}
                 for c in self.frame_check_m
@@ -562,9 +607,11 @@ def write_px4_results(
         "one pose period.",
         "",
         f"- longest gap between PX4 poses (ms, per drone): {px4['pose_gap_max_ms']}",
-        "- GLOBAL_POSITION_INT minus the world position from local NED after take-off (m; "
-        "the EKF origin's offset from the SIH start, GPS noise at initialisation): "
+        "- PX4's GLOBAL_POSITION_INT minus SIH's vehicle after take-off (m; the estimate's "
+        "error: simulated GPS noise): "
         f"{px4['frame_check_m']}",
+        "- PX4's horizontal position estimate (LOCAL_POSITION_NED from the start point) vs "
+        f"SIH's vehicle, worst during the flight (m): {px4['estimate_error_max_m']}",
         f"- take-off (s, per drone): {[d['takeoff_s'] for d in doc['drones']]}",
         "",
     ]

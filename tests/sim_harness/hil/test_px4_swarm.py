@@ -8,13 +8,14 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from companion.frames import quat_enu_flu_to_ned_frd, quat_from_yaw
 from companion.geo import GlobalPosition, HomePosition, global_to_local_enu
 from companion.param_check import BOARD_ONLY
 from sim_harness.hil.px4_gcs import PositionSample
-from sim_harness.hil.px4_swarm import Px4Swarm, shipped_params
-from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN
+from sim_harness.hil.px4_swarm import Px4Swarm, TruthSample, shipped_params
+from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, home_of
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
 
@@ -43,6 +44,7 @@ def test_px4s_local_pose_is_placed_from_its_start_point(tmp_path: Path) -> None:
         gcs = SimpleNamespace(
             position=lambda: PositionSample(1.0, 2.0, -1.0, -5.0, 0.5, 0.0, -0.1),  # N, E, D
             attitude=(1.0, q_ned),
+            truth=None,
         )
         hil.drones.append(SimpleNamespace(gcs=gcs))  # type: ignore[arg-type]
     pos, vel, q = hil._poses(now=1.01)
@@ -57,3 +59,23 @@ def test_the_shipped_parameters_go_to_px4_without_board_only_names() -> None:
     params = shipped_params()
     assert params and not set(params) & set(BOARD_ONLY)
     assert params["COM_OBL_RC_ACT"] == 5  # Hold on offboard loss, as the shipped file says
+
+
+def test_sihs_vehicle_is_placed_where_it_is_and_the_estimate_error_kept(tmp_path: Path) -> None:
+    hil = swarm(tmp_path, n=1)
+    where = home_of(DEFAULT_ORIGIN, np.array([3.0, -2.0, 4.0]))
+    q_ned = quat_enu_flu_to_ned_frd(quat_from_yaw(-0.5))
+    truth = TruthSample(
+        2.0, GlobalPosition(*vars(where).values()), np.array([1.0, 0.0, -0.5]), q_ned
+    )
+    estimate = PositionSample(2.0, 0.0, 0.0, -3.0, 0.0, 0.0, 0.0)  # 3 m up at the start point
+    gcs = SimpleNamespace(position=lambda: estimate, attitude=None, truth=truth)
+    hil.drones.append(SimpleNamespace(gcs=gcs))  # type: ignore[arg-type]
+    pos, vel, q = hil._poses(now=2.0)
+    np.testing.assert_allclose(pos[0], [3.0, -2.0, 4.0], atol=0.01)
+    np.testing.assert_allclose(vel[0], [0.0, 1.0, 0.5])
+    np.testing.assert_allclose(q[0], quat_from_yaw(-0.5), atol=1e-12)
+    start = hil.homes[0]
+    assert hil.estimate_error_max_m[0] == pytest.approx(
+        np.hypot(3.0 - start[0], -2.0 - start[1]), abs=0.01
+    )
