@@ -33,8 +33,9 @@ import numpy as np
 
 from companion.camera.layout import FACE_SIZE_PX, FACES
 from companion.frames import quat_from_euler_zyx, quat_to_rotmat
+from sim_harness.sim.drone_solid import DroneSolid
 from sim_harness.sim.quad_body import QuadGeometry, quad_mesh
-from sim_harness.sim.raycast import DroneSolid, RaycastRenderer
+from sim_harness.sim.raycast import RaycastRenderer
 from sim_harness.sim.render import camera_poses
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
 

@@ -3,10 +3,10 @@
 Same scene and camera model as `sim_harness.sim.render.PyBulletRenderer`, without pybullet:
 
 - The environment (ground and sky) is `sim_harness.sim.scene.Environment.shade`, as there.
-- Each drone is the solid that `sim_harness.sim.quad_body.quad_mesh` triangulates: five boxes
-  (body, four arms) and four ten-sided prisms (the rotors). Each part is a convex polyhedron, so a
-  ray meets it where the last plane it enters precedes the first plane it leaves ("slab" test):
-  9 parts x at most 12 planes per ray instead of 220 triangles.
+- Each drone is the solid that `sim_harness.sim.quad_body.quad_mesh` triangulates, as nine convex
+  parts (`sim_harness.sim.drone_solid`), so a ray meets a part where the last plane it enters
+  precedes the first plane it leaves ("slab" test): 9 parts x at most 12 planes per ray instead of
+  220 triangles.
 - Culling: per (observer, face, other drone) the drone's bounding sphere is projected to a pixel
   box; only the rays in those boxes that also pass the sphere are tested against its planes.
 - Shading copies TinyRenderer's fragment shader as pybullet configures it: palette colour times
@@ -25,14 +25,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.camera.layout import FACE_SIZE_PX, FACES, FOV_DEG, stitch
 from companion.frames import quat_to_rotmat
-from sim_harness.sim.quad_body import _PART_U, PALETTE_WIDTH_PX, QuadGeometry
+from sim_harness.sim.drone_solid import DroneSolid, drone_solid
+from sim_harness.sim.quad_body import QuadGeometry
 from sim_harness.sim.render import camera_poses
 from sim_harness.sim.scene import Environment, SceneSpec
 from sim_harness.sim.world import World
@@ -43,113 +44,14 @@ except ImportError:  # pragma: no cover
     _kernels = None  # type: ignore[assignment]
 
 FloatArray = NDArray[np.float64]
-_Rim = tuple[FloatArray, FloatArray, FloatArray, FloatArray]  # normals and points of a side's rim
 
 # TinyRenderer's lighting as pybullet sets it up (TinyRendererVisualShapeConverter, up axis z).
 _LIGHT_DIR_WORLD = np.array([-50.0, 30.0, 100.0]) / math.sqrt(50.0**2 + 30.0**2 + 100.0**2)
 _AMBIENT, _DIFFUSE, _SPECULAR, _SPECULAR_POWER = 0.6, 0.35, 0.05, 2.0
 _GRAY_WEIGHTS = np.array([0.299, 0.587, 0.114])  # ITU-R BT.601, as PyBulletRenderer
-_PLANES_PER_PART = 12
-_ROTOR_SIDES = 10  # quad_body._ROTOR_SEGMENTS
 # Where TinyRenderer samples a pixel, from its top-left corner (x right, y down): the bottom-left
 # corner. The default, so that both renderers draw the drones on the same pixels.
 TINYRENDERER_SAMPLE_PX = (0.0, 1.0)
-
-
-@dataclass(frozen=True)
-class DroneSolid:
-    """The drone as convex parts in its body frame (FLU), padded to `_PLANES_PER_PART` planes.
-
-    `normal` (P, 12, 3) outward unit normals and `offset` (P, 12): the part is {x: n.x <= offset};
-    padding planes have n = 0, offset = 1 (always satisfied). `rgb_u8` (P, 3) palette colours.
-    Smooth planes (rotor sides) carry the two rim normals their shading interpolates between:
-    `rim_a`/`rim_b` (P, 12, 3) unit normals at the rim points `rim_pa`/`rim_pb` (P, 12, 3).
-    `part_centre` (P, 3) and `part_radius_m` (P,): a bounding sphere per part.
-    """
-
-    normal: FloatArray
-    offset: FloatArray
-    rgb_u8: NDArray[np.uint8]
-    smooth: NDArray[np.bool_]
-    rim_a: FloatArray
-    rim_b: FloatArray
-    rim_pa: FloatArray
-    rim_pb: FloatArray
-    part_centre: FloatArray
-    part_radius_m: FloatArray
-    radius_m: float
-
-
-def drone_solid(g: QuadGeometry) -> DroneSolid:
-    """Convex parts of `quad_body.quad_mesh(g)`: the body box, four arm boxes, four rotor prisms."""
-    palette = g.palette_rgb_u8()[0]
-    rgb = {part: palette[int(u * PALETTE_WIDTH_PX)] for part, u in _PART_U.items()}
-    parts: list[tuple[list[FloatArray], list[float], NDArray[np.uint8], list[_Rim] | None]] = []
-    spheres: list[tuple[FloatArray, float]] = []
-
-    def box(center: FloatArray, half: FloatArray, yaw: float, colour: NDArray[np.uint8]) -> None:
-        c, s = math.cos(yaw), math.sin(yaw)
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        normals, offsets = [], []
-        for axis in range(3):
-            for sign in (-1.0, 1.0):
-                n = sign * rot[:, axis]
-                normals.append(n)
-                offsets.append(float(n @ center + half[axis]))
-        parts.append((normals, offsets, colour, None))
-        spheres.append((center, float(np.linalg.norm(half))))
-
-    def prism(center: FloatArray, radius: float, height: float, colour: NDArray[np.uint8]) -> None:
-        step = 2 * math.pi / _ROTOR_SIDES
-        normals, offsets, rims = [], [], []
-        for k in range(_ROTOR_SIDES):
-            mid = (k + 0.5) * step
-            n = np.array([math.cos(mid), math.sin(mid), 0.0])
-            normals.append(n)
-            offsets.append(float(n @ center + radius * math.cos(step / 2)))
-            a = np.array([math.cos(k * step), math.sin(k * step), 0.0])
-            b = np.array([math.cos((k + 1) * step), math.sin((k + 1) * step), 0.0])
-            rims.append((a, b, center + radius * a, center + radius * b))
-        for sign in (-1.0, 1.0):
-            normals.append(np.array([0.0, 0.0, sign]))
-            offsets.append(sign * float(center[2]) + height / 2)
-        parts.append((normals, offsets, colour, rims))
-        spheres.append((center, math.hypot(radius, height / 2)))
-
-    box(np.zeros(3), np.array(g.body_half_extents_m), 0.0, rgb["body"])
-    arm_half = np.array([g.arm_length_m / 2, g.arm_half_width_m, g.arm_half_width_m])
-    for yaw in g.arm_yaws_rad():
-        direction = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-        box(direction * g.arm_length_m / 2, arm_half, yaw, rgb["arm"])
-    for yaw in g.arm_yaws_rad():
-        direction = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-        centre = direction * g.arm_length_m + np.array([0.0, 0.0, g.rotor_height_m])
-        prism(centre, g.rotor_radius_m, g.rotor_thickness_m, rgb["rotor"])
-
-    n_parts = len(parts)
-    normal = np.zeros((n_parts, _PLANES_PER_PART, 3))
-    offset = np.ones((n_parts, _PLANES_PER_PART))
-    smooth = np.zeros((n_parts, _PLANES_PER_PART), dtype=bool)
-    rims = np.zeros((4, n_parts, _PLANES_PER_PART, 3))
-    for p, (normals, offsets, _, rim) in enumerate(parts):
-        normal[p, : len(normals)] = normals
-        offset[p, : len(offsets)] = offsets
-        for k, vectors in enumerate(rim or []):
-            smooth[p, k] = True
-            rims[:, p, k] = vectors
-    return DroneSolid(
-        normal=normal,
-        offset=offset,
-        rgb_u8=np.array([colour for _, _, colour, _ in parts], dtype=np.uint8),
-        smooth=smooth,
-        rim_a=rims[0],
-        rim_b=rims[1],
-        rim_pa=rims[2],
-        rim_pb=rims[3],
-        part_centre=np.array([c for c, _ in spheres]),
-        part_radius_m=np.array([r for _, r in spheres]),
-        radius_m=g.bounding_radius_m,
-    )
 
 
 def pixel_rays_camera(sample_offset_px: tuple[float, float]) -> FloatArray:
@@ -246,9 +148,19 @@ class RaycastRenderer:
         self._rays_cam = pixel_rays_camera(sample_offset_px).reshape(-1, 3)
         self._bases = _face_bases()
         self._solid: tuple[QuadGeometry, DroneSolid] | None = None
+        self._buf: tuple[NDArray[Any], ...] | None = None
         if compiled and _kernels is None:
             raise ImportError("RaycastRenderer(compiled=True) needs numba: pip install numba")
         self.compiled = _kernels is not None if compiled is None else compiled
+
+    def _buffers(self, n_px: int) -> tuple[NDArray[Any], ...]:
+        """Per-pixel depth (inf), owner (-1), part, plane and touched list, reused across calls."""
+        if self._buf is None or len(self._buf[0]) < n_px:
+            self._buf = (
+                np.full(n_px, np.inf),
+                *(np.full(n_px, -1, dtype=np.intp) for _ in range(4)),
+            )
+        return self._buf
 
     def solid(self, geometry: QuadGeometry) -> DroneSolid:
         if self._solid is None or self._solid[0] != geometry:
@@ -321,20 +233,18 @@ class RaycastRenderer:
         cam_to_body = np.einsum("tij,tic->tjc", rot_j, basis[kk, ff])  # (T, 3, 3)
         origin = np.einsum("tij,ti->tj", rot_j, -rel[kk, ff, jj])  # (T, 3)
         if self.compiled:
-            n_px = len(chosen) * len(FACES) * size * size
-            depth = np.full(n_px, np.inf)
-            owner = np.full(n_px, -1, dtype=np.intp)
-            part, plane = np.empty(n_px, dtype=np.intp), np.empty(n_px, dtype=np.intp)
-            _kernels.cast_drones(
+            depth, owner, part, plane, touched = self._buffers(len(chosen) * len(FACES) * size**2)
+            n_hit = _kernels.cast_drones(
                 centre, boxes, cam_to_body, origin, (kk * len(FACES) + ff) * size * size,
                 self._rays_cam, r, *self.sample_offset_px, self.near_m, self.far_m,
                 solid.normal, solid.offset, np.any(solid.normal != 0.0, axis=2).sum(axis=1),
-                solid.part_centre, solid.part_radius_m, depth, owner, part, plane,
+                solid.part_centre, solid.part_radius_m, depth, owner, part, plane, touched,
             )  # fmt: skip
-            flat = np.flatnonzero(owner >= 0)
-            t = owner[flat]
+            flat = touched[:n_hit].copy()
+            hit_t, t = depth[flat], owner[flat]
+            depth[flat], owner[flat] = np.inf, -1  # the buffers are clean for the next call
             d = np.einsum("mjc,mc->mj", cam_to_body[t], self._rays_cam[flat % (size * size)])
-            hit_body = origin[t] + depth[flat, None] * d
+            hit_body = origin[t] + hit_t[:, None] * d
             return flat, self._shade(hit_body, part[flat], plane[flat], rot[jj[t]], solid)
         which, pix = _sphere_pixels(centre, boxes, r, self.sample_offset_px)
         ray = self._rays_cam[pix]

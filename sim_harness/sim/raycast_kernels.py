@@ -110,8 +110,10 @@ def cast_drones(
     owner: NDArray[np.intp],  # same shape: pair index t of the nearest hit, -1 if none
     part_hit: NDArray[np.intp],
     plane_hit: NDArray[np.intp],
-) -> None:
+    touched: NDArray[np.intp],  # out: the pixels hit, first `return value` entries
+) -> int:
     size = 64
+    n_touched = 0
     half = math.tan(math.radians(50.0))
     r2 = radius * radius
     for t in range(centre.shape[0]):
@@ -172,5 +174,9 @@ def cast_drones(
                 z = best * rz
                 idx = face_base[t] + pix
                 if near <= z <= far and best < depth[idx]:
+                    if owner[idx] < 0:
+                        touched[n_touched] = idx
+                        n_touched += 1
                     depth[idx], owner[idx] = best, t
                     part_hit[idx], plane_hit[idx] = best_part, best_plane
+    return n_touched

@@ -7,8 +7,9 @@ import pytest
 
 from companion.camera.layout import FACE_NAMES, FOV_DEG, split
 from companion.frames import quat_from_euler_zyx, quat_to_rotmat
+from sim_harness.sim.drone_solid import drone_solid
 from sim_harness.sim.quad_body import QuadGeometry, quad_mesh
-from sim_harness.sim.raycast import RaycastRenderer, drone_solid
+from sim_harness.sim.raycast import RaycastRenderer
 from sim_harness.sim.render import PyBulletRenderer, camera_poses
 from sim_harness.sim.world import World
 
