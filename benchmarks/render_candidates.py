@@ -6,9 +6,11 @@
 All agents' six faces of the paper's common-goal spawn (N agents, random small tilts), drone
 pixels only (the environment, shared by all, is timed separately):
 
-- `numpy_slabs`: `sim_harness.sim.raycast` as shipped (sphere culling to per-row pixel intervals,
+- `numpy_slabs`: `sim_harness.sim.raycast`'s numpy path (sphere culling to per-row pixel intervals,
   per-part spheres, slab test against nine convex parts).
 - `numpy_triangles`: the same culling, then Moller-Trumbore against the 220 mesh triangles.
+- `numba_slabs`: the slab path as compiled loops (`sim_harness.sim.raycast_kernels`), as shipped
+  when numba is installed.
 - `warp_bvh`: NVIDIA Warp on the CPU: one `wp.Mesh` (BVH) of all drones in world coordinates,
   one `mesh_query_ray` per pixel of every face (no culling: that is what a BVH is for); kernel
   compilation and mesh building are excluded. Skipped when Warp cannot be imported.
@@ -164,13 +166,19 @@ def main() -> None:
     rows: dict[str, Any] = {}
     for n in args.agents:
         pos, q = scene(n)
-        slabs = RaycastRenderer()
-        tris = RaycastRenderer()
+        slabs = RaycastRenderer(compiled=False)
+        tris = RaycastRenderer(compiled=False)
         tris._intersect = triangles_intersect(QuadGeometry())  # type: ignore[method-assign]
         row: dict[str, Any] = {
             "numpy_slabs_cpu_s": time_drone_pixels(slabs, pos, q, args.repeats),
             "numpy_triangles_cpu_s": time_drone_pixels(tris, pos, q, args.repeats),
         }
+        try:
+            row["numba_slabs_cpu_s"] = time_drone_pixels(
+                RaycastRenderer(compiled=True), pos, q, args.repeats
+            )
+        except ImportError as exc:
+            row["numba_slabs_cpu_s"] = f"not importable: {exc}"
         eyes, _, _ = camera_poses(pos, q)
         t0 = time.process_time()
         for _ in range(args.repeats):
