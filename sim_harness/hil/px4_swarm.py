@@ -88,6 +88,7 @@ FloatArray = NDArray[np.float64]
 POSE_RATE_HZ = 50.0  # LOCAL_POSITION_NED and ATTITUDE_QUATERNION on the GCS link
 TARGET_RATE_HZ = 10.0  # POSITION_TARGET_LOCAL_NED: what PX4 flies (the flight log's setpoint)
 TAKEOFF_TIMEOUT_S = 60.0
+HEARTBEAT_SLACK_S = 2.5  # PX4 sends HEARTBEAT at 1 Hz on the GCS link
 IDENTITY_Q = np.array([1.0, 0.0, 0.0, 0.0])
 ORIGIN = GlobalPosition(DEFAULT_ORIGIN.lat_deg, DEFAULT_ORIGIN.lon_deg, DEFAULT_ORIGIN.alt_amsl_m)
 # The GCS link's streams: SIH's vehicle at the pose rate, PX4's estimate and target for the log,
@@ -491,6 +492,13 @@ class Px4Swarm:
             except subprocess.TimeoutExpired:
                 drone.process.kill()
                 drone.exit_code = drone.process.wait(5.0)
+        # PX4's heartbeat (1 Hz) shows the daemons' Hold within a second: wait for it, so the
+        # final modes reported are PX4's, not the last heartbeat before the switch.
+        deadline = time.monotonic() + HEARTBEAT_SLACK_S
+        while time.monotonic() < deadline and any(
+            d.gcs.mode is Px4Mode.OFFBOARD for d in self.drones
+        ):
+            time.sleep(0.05)
 
     # -- results ---------------------------------------------------------------------------
 
