@@ -236,7 +236,7 @@ class RaycastRenderer:
             depth, owner, part, plane, touched = self._buffers(len(chosen) * len(FACES) * size**2)
             n_hit = _kernels.cast_drones(
                 centre, boxes, cam_to_body, origin, (kk * len(FACES) + ff) * size * size,
-                self._rays_cam, r, *self.sample_offset_px, self.near_m, self.far_m,
+                self._rays_cam, size, half, r, *self.sample_offset_px, self.near_m, self.far_m,
                 solid.normal, solid.offset, np.any(solid.normal != 0.0, axis=2).sum(axis=1),
                 solid.part_centre, solid.part_radius_m, depth, owner, part, plane, touched,
             )  # fmt: skip

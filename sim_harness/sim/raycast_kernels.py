@@ -95,7 +95,9 @@ def cast_drones(
     cam_to_body: FloatArray,  # (T, 3, 3) camera -> drone body
     origin: FloatArray,  # (T, 3) the eye in the drone's body frame
     face_base: NDArray[np.intp],  # (T,) flat index of the face's first pixel
-    rays_cam: FloatArray,  # (64 * 64, 3)
+    rays_cam: FloatArray,  # (size * size, 3)
+    size: int,  # face side, pixels
+    half: float,  # tan(FOV / 2)
     radius: float,
     offset_x: float,
     offset_y: float,
@@ -112,9 +114,7 @@ def cast_drones(
     plane_hit: NDArray[np.intp],
     touched: NDArray[np.intp],  # out: the pixels hit, first `return value` entries
 ) -> int:
-    size = 64
     n_touched = 0
-    half = math.tan(math.radians(50.0))
     r2 = radius * radius
     for t in range(centre.shape[0]):
         cx, cy, cz = centre[t, 0], centre[t, 1], centre[t, 2]
@@ -130,8 +130,8 @@ def cast_drones(
                 if disc < 0.0 or cx * (-cx * e / a) + e <= 0.0:
                     continue
                 root = math.sqrt(disc)
-                lo = max(lo, math.ceil(((-cx * e + root) / a / half + 1.0) * 32 - offset_x))
-                hi = min(hi, math.floor(((-cx * e - root) / a / half + 1.0) * 32 - offset_x))
+                lo = max(lo, math.ceil(((-cx * e + root) / a / half + 1.0) * size / 2 - offset_x))
+                hi = min(hi, math.floor(((-cx * e - root) / a / half + 1.0) * size / 2 - offset_x))
             for col in range(lo, hi + 1):
                 pix = row * size + col
                 rx, ry, rz = rays_cam[pix, 0], rays_cam[pix, 1], rays_cam[pix, 2]
