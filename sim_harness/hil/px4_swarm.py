@@ -223,6 +223,9 @@ class Px4Swarm:
         self.pose_gap_max_s = [0.0] * n
         self.frame_check_m: list[tuple[float, float] | None] = [None] * n
         self.estimate_error_max_m = [0.0] * n  # PX4's horizontal estimate vs SIH's vehicle
+        # Why world steps were late: the loop itself behind, or a PX4 pose stale (flight only).
+        self.world_steps_behind = 0
+        self.world_steps_pose_stale = 0
         self.flight_t0 = 0.0  # monotonic time of the flight's t = 0
 
     # -- set-up ----------------------------------------------------------------------------
@@ -397,6 +400,7 @@ class Px4Swarm:
                     clock.advance_until(time.monotonic() + 0.05)
                 lateness.__init__(max_late_fraction=cfg.max_late_fraction)  # type: ignore[misc]
                 self.pose_gap_max_s = [0.0] * n
+                self.world_steps_behind = self.world_steps_pose_stale = 0
                 side.call("reset_stats")
                 flight_start = time.monotonic()
                 self.progress(f"all engaged (last after {max(e or 0 for e in engage_s):.1f} s)")
@@ -540,6 +544,8 @@ class Px4Swarm:
         return {
             "pose_rate_hz": POSE_RATE_HZ,
             "pose_gap_max_ms": [round(g * 1e3, 1) for g in self.pose_gap_max_s],
+            "world_steps_late_loop_behind": self.world_steps_behind,
+            "world_steps_late_pose_stale": self.world_steps_pose_stale,
             "estimate_error_max_m": [round(e, 3) for e in self.estimate_error_max_m],
             "frame_check_m": [
                 None if c is None else {"horizontal": round(c[0], 3), "up": round(c[1], 3)}
@@ -586,6 +592,8 @@ class _WorldClock:
         lat.physics_steps += 1 + missed
         stale = self.swarm._pose_age_s(now) > self.pose_late_s
         lat.physics_late += (behind > late_s or stale) + missed
+        self.swarm.world_steps_behind += (behind > late_s) + missed
+        self.swarm.world_steps_pose_stale += stale
         lat.physics_max_behind_s = max(lat.physics_max_behind_s, behind)
         self.last = pos, _, q = self.swarm._poses(now)
         self.board.write(pos, q)
@@ -614,6 +622,8 @@ def write_px4_results(
         f"drone's newest PX4 pose was older than {1e3 * swarm.config.late_physics_s:.0f} ms + "
         "one pose period.",
         "",
+        f"- late world steps: loop behind {px4['world_steps_late_loop_behind']}, a PX4 pose "
+        f"stale {px4['world_steps_late_pose_stale']} (a step can be both)",
         f"- longest gap between PX4 poses (ms, per drone): {px4['pose_gap_max_ms']}",
         "- PX4's GLOBAL_POSITION_INT minus SIH's vehicle after take-off (m; the estimate's "
         "error: simulated GPS noise): "
