@@ -39,8 +39,6 @@ import time
 from collections.abc import Awaitable, Callable, Mapping
 from typing import Any, TypeVar
 
-import numpy as np
-
 from companion import daemon_reports as reports
 from companion import frames
 from companion.autopilot_types import Autopilot
@@ -53,7 +51,7 @@ from companion.control import ControlLaw, ControlOutput
 from companion.daemon_commands import Commander
 from companion.daemon_outputs import Outputs, TickTimes
 from companion.errors import CompanionError
-from companion.geo import GlobalPosition, HomePosition, global_to_local_enu
+from companion.geo import MigrationFromHome
 from companion.health import (
     Action,
     HealthConfig,
@@ -71,7 +69,6 @@ from companion.telemetry import TelemetryPublisher
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 ATTITUDE_SAMPLE_S = 0.02
-MIGRATION_MOVED_M = 0.1  # a home update moving the converted point more than this is logged
 
 
 class _StopRequested(Exception):
@@ -140,8 +137,9 @@ class Daemon:
         self._last_reason = "no policy output yet"
         self._last_seqs: tuple[int, ...] | None = None
         self._last_control_s: float | None = None  # the law's filter runs on real tick spacing
-        self._home: HomePosition | None = None  # the home the migration point was converted with
-        self._migration_enu: FloatArray | None = None  # [control] migration_point_global, local
+        self._migration = MigrationFromHome(
+            config.control.migration_point_global, self.outputs.event
+        )
         self.ticks = 0
         self.skipped_ticks = 0
 
@@ -387,35 +385,9 @@ class Daemon:
         return control, True, self._stale_problem(snapshot, now_s)
 
     def _migration_point(self) -> tuple[FloatArray | None, str]:
-        """`[control] migration_point_global` in the local ENU frame, from PX4's home position:
-        (the point, "") or (None, why not: no home yet, so neither engage nor fly). (None, "")
-        when the point is given in ENU (or not at all): the control law uses its config."""
-        point = self.config.control.migration_point_global
-        if point is None:
-            return None, ""
+        """See `MigrationFromHome.resolve`; (None, "") when the point is not global."""
         assert self._commander is not None
-        home = self._commander.autopilot.telemetry().home
-        if home is None:
-            return None, "waiting for PX4's home position (migration_point_global needs it)"
-        if home.value != self._home:  # PX4 re-sends its home; it moves when re-armed elsewhere
-            target = GlobalPosition(*point)
-            try:
-                local = global_to_local_enu(target, home.value)
-            except ValueError as exc:
-                return None, f"migration_point_global not usable: {exc}"
-            previous, self._home, self._migration_enu = self._migration_enu, home.value, local
-            if previous is None or float(np.linalg.norm(local - previous)) > MIGRATION_MOVED_M:
-                detail = {
-                    "home": [*vars(home.value.position).values()],
-                    "home_local_ned_m": list(home.value.local_ned_m),
-                    "migration_point_global": list(point),
-                    "migration_point_enu": [round(float(c), 3) for c in local],
-                }
-                log.info(
-                    "migration point from PX4's home: local ENU %s", detail["migration_point_enu"]
-                )
-                self.outputs.event("migration point", "info", detail)
-        return self._migration_enu, ""
+        return self._migration.resolve(self._commander.autopilot.telemetry().home)
 
     def _stale_problem(self, snapshot: RigSnapshot, now_s: float) -> str:
         """Why no fresh output may be coming (shown only if the output turns out stale)."""

@@ -14,8 +14,11 @@ emulator here uses): the horizontal error grows with the square of the distance,
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,7 +26,11 @@ from numpy.typing import NDArray
 from companion.errors import ConfigError
 from companion.validation import require_range, require_vector3
 
+if TYPE_CHECKING:
+    from companion.autopilot_types import Stamped
+
 FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
 EARTH_RADIUS_M = 6_378_137.0
 MAX_OFFSET_M = 5_000.0  # a point farther from home than this is refused (flat earth, typos)
 
@@ -81,3 +88,46 @@ def global_to_local_enu(point: GlobalPosition, home: HomePosition) -> FloatArray
         )
     north, east, down = home.local_ned_m
     return offset + np.array([east, north, -down], dtype=np.float64)
+
+
+class MigrationFromHome:
+    """`[control] migration_point_global` in the daemon's local ENU frame, kept up to date with
+    the home position PX4 reports (it re-sends it, and moves it when re-armed elsewhere)."""
+
+    MOVED_M = 0.1  # a home update moving the converted point more than this is logged
+
+    def __init__(
+        self,
+        point: tuple[float, float, float] | None,
+        event: Callable[[str, str, Any], None],
+    ) -> None:
+        self._point = None if point is None else GlobalPosition(*point)
+        self._event = event
+        self._home: HomePosition | None = None  # the home the point was converted with
+        self._enu: FloatArray | None = None
+
+    def resolve(self, home: Stamped[HomePosition] | None) -> tuple[FloatArray | None, str]:
+        """(the point in local ENU, "") or (None, why not: no home yet, so neither engage nor
+        fly); (None, "") when the point is not global (the control law uses its config)."""
+        if self._point is None:
+            return None, ""
+        if home is None:
+            return None, "waiting for PX4's home position (migration_point_global needs it)"
+        if home.value != self._home:
+            try:
+                local = global_to_local_enu(self._point, home.value)
+            except ValueError as exc:
+                return None, f"migration_point_global not usable: {exc}"
+            previous, self._home, self._enu = self._enu, home.value, local
+            if previous is None or float(np.linalg.norm(local - previous)) > self.MOVED_M:
+                detail = {
+                    "home": [*vars(home.value.position).values()],
+                    "home_local_ned_m": list(home.value.local_ned_m),
+                    "migration_point_global": list(vars(self._point).values()),
+                    "migration_point_enu": [round(float(c), 3) for c in local],
+                }
+                log.info(
+                    "migration point from PX4's home: local ENU %s", detail["migration_point_enu"]
+                )
+                self._event("migration point", "info", detail)
+        return self._enu, ""

@@ -4,19 +4,19 @@ PX4's home position (companion.geo), checked against the emulator's own NED -> g
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
 
-from companion.autopilot_types import AutopilotTelemetry, Stamped
+from companion.autopilot_types import Stamped
 from companion.control import ControlConfig
 from companion.errors import ConfigError
 from companion.geo import (
     EARTH_RADIUS_M,
     GlobalPosition,
     HomePosition,
+    MigrationFromHome,
     enu_offset_m,
     global_to_local_enu,
     require_global,
@@ -97,39 +97,23 @@ def test_require_global_returns_floats() -> None:
     assert require_global("f", (47, 8, 500)) == (47.0, 8.0, 500.0)
 
 
-def _daemon_with_home(config: Any, home: HomePosition | None) -> tuple[Any, list[tuple[str, Any]]]:
-    """A Daemon shell whose autopilot reports `home`: only `_migration_point` is exercised."""
-    from companion.daemon import Daemon
-
-    daemon = object.__new__(Daemon)
-    telemetry = AutopilotTelemetry(home=None if home is None else Stamped(home, 1.0))
-    events: list[tuple[str, Any]] = []
-    daemon.config = config
-    daemon._commander = SimpleNamespace(autopilot=SimpleNamespace(telemetry=lambda: telemetry))  # type: ignore[assignment]
-    daemon.outputs = SimpleNamespace(event=lambda e, _lvl, d: events.append((e, d)))  # type: ignore[assignment]
-    daemon._home = None
-    daemon._migration_enu = None
-    return daemon, events
-
-
-def test_the_daemon_waits_for_home_then_converts_once() -> None:
+def test_the_migration_point_waits_for_home_then_converts_once() -> None:
     north_deg = math.degrees(40.0 / EARTH_RADIUS_M)
-    control = ControlConfig(migration_point_global=(HOME.lat_deg + north_deg, HOME.lon_deg, 490.0))
-    config = SimpleNamespace(control=control)
-    daemon, events = _daemon_with_home(config, None)
-    point, why = daemon._migration_point()
-    assert point is None and "waiting for PX4's home position" in why
+    events: list[tuple[str, Any]] = []
+    point = (HOME.lat_deg + north_deg, HOME.lon_deg, 490.0)
+    migration = MigrationFromHome(point, lambda e, _lvl, d: events.append((e, d)))
+    local, why = migration.resolve(None)
+    assert local is None and "waiting for PX4's home position" in why
 
-    daemon, events = _daemon_with_home(config, HomePosition(HOME))
-    point, why = daemon._migration_point()
+    home = Stamped(HomePosition(HOME), 1.0)
+    local, why = migration.resolve(home)
     assert why == ""
-    np.testing.assert_allclose(point, [0.0, 40.0, 2.0], atol=1e-6)
-    daemon._migration_point()
+    np.testing.assert_allclose(local, [0.0, 40.0, 2.0], atol=1e-6)
+    migration.resolve(home)
     assert [e for e, _ in events] == ["migration point"]  # logged once per home
     assert events[0][1]["migration_point_enu"] == [0.0, 40.0, 2.0]
 
 
 def test_an_enu_point_needs_no_home() -> None:
-    config = SimpleNamespace(control=ControlConfig(migration_point_enu=(30.0, 0.0, 5.0)))
-    daemon, _ = _daemon_with_home(config, None)
-    assert daemon._migration_point() == (None, "")
+    migration = MigrationFromHome(None, lambda *_: None)
+    assert migration.resolve(None) == (None, "")
