@@ -20,6 +20,7 @@ import contextlib
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import tarfile
 import tempfile
@@ -38,6 +39,32 @@ MODEL = "sihsim_quadx"
 OFFBOARD_PORT_BASE = 14540  # PX4 instance N sends its API link to 14540 + N
 GCS_PORT_BASE = 18570  # PX4 instance N's GCS link listens on 18570 + N
 MAX_INSTANCES = 10  # from instance 10 on, PX4's start script reuses port 14549
+# PX4's server socket for instance N: a file, so shared by every network namespace. Two PX4s with
+# the same instance number clash even in different namespaces; pick numbers no live PX4 holds.
+SERVER_SOCKET = "/tmp/px4-sock-{index}"
+
+
+def instance_in_use(index: int) -> bool:
+    """Whether a running PX4 (in any namespace) holds instance number `index`."""
+    path = SERVER_SOCKET.format(index=index)
+    if not os.path.exists(path):
+        return False
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        try:
+            probe.connect(path)
+        except OSError:  # a stale file left by a PX4 that is gone
+            return False
+    return True
+
+
+def free_instance_indices(count: int) -> list[int]:
+    """`count` instance numbers that no running PX4 holds (lowest first)."""
+    free = [i for i in range(MAX_INSTANCES) if not instance_in_use(i)]
+    if len(free) < count:
+        raise Px4SitlError(f"{count} PX4 instances wanted, only {len(free)} numbers free")
+    return free[:count]
+
+
 HOW_TO_GET = (
     "set PX4_SITL_TARBALL to a PX4 SITL build tarball (the project's CI uses "
     "../shared/px4-sitl/px4-sitl-sih-02e73e3b6f.tar.xz; to build one: clone PX4-Autopilot with "

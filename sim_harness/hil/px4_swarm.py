@@ -69,7 +69,14 @@ from sim_harness.hil.lateness import Lateness
 from sim_harness.hil.px4_gcs import GroundStation
 from sim_harness.hil.px4_logic import Px4Mode
 from sim_harness.hil.px4_params import SHIPPED_PARAMS
-from sim_harness.hil.px4_sitl import Px4Instance, Px4Sitl, RunningPx4, tarball_from_env, unpack
+from sim_harness.hil.px4_sitl import (
+    Px4Instance,
+    Px4Sitl,
+    RunningPx4,
+    free_instance_indices,
+    tarball_from_env,
+    unpack,
+)
 from sim_harness.hil.results import flight_log_stats, write_results
 from sim_harness.hil.swarm import (
     SWITCH_INTERVAL_S,
@@ -240,11 +247,10 @@ class Px4Swarm:
     def _instances(self) -> list[Px4Instance]:
         params = shipped_params()
         specs = []
-        for setup in self.setups:
+        numbers = free_instance_indices(len(self.setups))  # another PX4 may run (tests, a CLI)
+        for setup, number in zip(self.setups, numbers, strict=True):
             home = home_of(DEFAULT_ORIGIN, setup.home_world_enu)
-            specs.append(
-                Px4Instance(setup.index, home.lat_deg, home.lon_deg, home.alt_amsl_m, params)
-            )
+            specs.append(Px4Instance(number, home.lat_deg, home.lon_deg, home.alt_amsl_m, params))
         return specs
 
     def _take_off(self) -> None:
