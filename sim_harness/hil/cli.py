@@ -167,7 +167,8 @@ def fly_hil(
 
     hil = HilConfig(daemon_overrides=overrides or {}, renderer=renderer)
     if autopilot == "px4-sitl":
-        from sim_harness.hil.px4_swarm import Px4Swarm, write_px4_results
+        from sim_harness.hil.px4_results import write_px4_results
+        from sim_harness.hil.px4_swarm import Px4Swarm
 
         swarm = Px4Swarm(scenario, model, out, hil, progress=say)
         px4_run = swarm.run(duration_s)

@@ -66,9 +66,9 @@ from sim_harness.hil.drone import (
     toml_text,
 )
 from sim_harness.hil.lateness import Lateness
-from sim_harness.hil.px4_gcs import GroundStation
 from sim_harness.hil.px4_logic import Px4Mode
 from sim_harness.hil.px4_params import SHIPPED_PARAMS
+from sim_harness.hil.px4_pose_station import PoseStation
 from sim_harness.hil.px4_sitl import (
     Px4Instance,
     Px4Sitl,
@@ -77,7 +77,7 @@ from sim_harness.hil.px4_sitl import (
     tarball_from_env,
     unpack,
 )
-from sim_harness.hil.results import flight_log_stats, write_results
+from sim_harness.hil.results import flight_log_stats
 from sim_harness.hil.swarm import (
     SWITCH_INTERVAL_S,
     HilConfig,
@@ -86,7 +86,7 @@ from sim_harness.hil.swarm import (
     raise_priority,
 )
 from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, home_of
-from sim_harness.sim.rollout import FlightLog, has_arrived
+from sim_harness.sim.rollout import has_arrived
 from sim_harness.sim.scenarios import Scenario
 from sim_harness.sim.world import World
 
@@ -110,44 +110,6 @@ STREAMS_HZ = {
     mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: 1.0,
     mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: 1.0,
 }
-
-
-@dataclass(frozen=True)
-class TruthSample:
-    """HIL_STATE_QUATERNION: SIH's simulated vehicle (receive time; WGS-84, NED m/s, NED<-FRD)."""
-
-    t_s: float
-    position: GlobalPosition
-    vel_ned_mps: FloatArray
-    q_ned_frd: FloatArray
-
-
-class PoseStation(GroundStation):
-    """A ground station that also keeps PX4's latest ATTITUDE_QUATERNION (NED <- FRD, the
-    estimate) and HIL_STATE_QUATERNION (SIH's simulated vehicle, the truth)."""
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.attitude: tuple[float, FloatArray] | None = None  # receive time, q (w, x, y, z)
-        self.truth: TruthSample | None = None
-
-    def _on_message(self, msg: Any, now: float) -> None:
-        kind = msg.get_type()
-        if kind == "ATTITUDE_QUATERNION":
-            self.attitude = (now, np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=np.float64))
-        elif kind == "HIL_STATE_QUATERNION":
-            self.truth = TruthSample(
-                now,
-                GlobalPosition(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3),
-                np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64) * 0.01,
-                np.asarray(msg.attitude_quaternion, dtype=np.float64),
-            )
-        else:
-            super()._on_message(msg, now)
-
-    def stream(self, message_id: int, rate_hz: float) -> None:
-        """SET_MESSAGE_INTERVAL on this link (PX4's GCS link streams at its normal-mode rates)."""
-        self.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, message_id, 1e6 / rate_hz)
 
 
 @dataclass
@@ -607,38 +569,3 @@ class _WorldClock:
             touching.update(self.world.contacts(pos, q))
         self.next_step += (1 + missed) * self.dt_s
         return touching
-
-
-def write_px4_results(
-    swarm: Px4Swarm, run: HilRun, out_dir: Path, compare: FlightLog | None = None
-) -> dict[str, Any]:
-    """The run folder as `results.write_results` writes it, with PX4's side: per-drone rows from
-    PX4's heartbeats, pose gaps and the frame check in hil.json and report.md."""
-    extra = {"autopilot": "px4-sitl", "px4": swarm.px4_summary()}
-    doc = write_results(run, out_dir, compare, drones=swarm.drone_rows(run.engage_s), extra=extra)
-    px4 = doc["px4"]
-    lines = [
-        "",
-        "## Real PX4",
-        "",
-        "Each drone: PX4 SITL (commander, navigator, EKF2, multicopter controllers) flying its own "
-        "SIH quadrotor, started at its spawn point's ground position, armed and taken off to the "
-        "spawn altitude by the harness's ground station before its daemon started; the daemon "
-        "got the goal as `migration_point_global`. A world step counts as late also when a "
-        f"drone's newest PX4 pose was older than {1e3 * swarm.config.late_physics_s:.0f} ms + "
-        "one pose period.",
-        "",
-        f"- late world steps: loop behind {px4['world_steps_late_loop_behind']}, a PX4 pose "
-        f"stale {px4['world_steps_late_pose_stale']} (a step can be both)",
-        f"- longest gap between PX4 poses (ms, per drone): {px4['pose_gap_max_ms']}",
-        "- PX4's GLOBAL_POSITION_INT minus SIH's vehicle after take-off (m; the estimate's "
-        "error: simulated GPS noise): "
-        f"{px4['frame_check_m']}",
-        "- PX4's horizontal position estimate (LOCAL_POSITION_NED from the start point) vs "
-        f"SIH's vehicle, worst during the flight (m): {px4['estimate_error_max_m']}",
-        f"- take-off (s, per drone): {[d['takeoff_s'] for d in doc['drones']]}",
-        "",
-    ]
-    with (out_dir / "report.md").open("a") as report:
-        report.write("\n".join(lines))
-    return doc

@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sim_harness.hil.px4_results import write_px4_results
 from sim_harness.hil.px4_sitl import unavailable_reason
-from sim_harness.hil.px4_swarm import Px4Swarm, write_px4_results
+from sim_harness.hil.px4_swarm import Px4Swarm
 from sim_harness.hil.swarm import HilConfig
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
