@@ -56,7 +56,7 @@ from companion.frames import ned_to_enu, quat_ned_frd_to_enu_flu
 from companion.geo import GlobalPosition, enu_offset_m
 from companion.param_check import BOARD_ONLY, read_params_file
 from sim_harness.errors import SimError
-from sim_harness.hil.camera_side import CameraSide, CameraSideConfig, PoseBoard
+from sim_harness.hil.camera_side import CameraSide, PoseBoard
 from sim_harness.hil.drone import (
     LOOPBACK_TCP,
     DroneSetup,
@@ -172,10 +172,6 @@ class Px4Swarm:
         self.progress = progress or (lambda _msg: None)
         self.px4_root = px4_root
         n = scenario.n_agents
-        rng = np.random.default_rng(self.config.seed)
-        period = 1.0 / self.config.camera_rate_hz
-        self.phase_s = (np.arange(n) + rng.uniform(0, 1, n)) * period / n
-        self.delay_s = rng.uniform(*self.config.camera_delay_s, (n, 6))
         pos = scenario.initial_pos_world_enu
         self.homes = np.column_stack([pos[:, :2], np.zeros(n)])  # SIH starts on the ground
         self.setups = [
@@ -311,20 +307,7 @@ class Px4Swarm:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         board = PoseBoard(n)
         board.write(self.scenario.initial_pos_world_enu, np.tile(IDENTITY_Q, (n, 1)))
-        side = CameraSide(
-            CameraSideConfig(
-                folders=tuple(s.folder for s in self.setups),
-                board_name=board.name,
-                phase_s=tuple(float(p) for p in self.phase_s),
-                delay_s=tuple(tuple(float(d) for d in row) for row in self.delay_s),
-                rate_hz=cfg.camera_rate_hz,
-                jitter_s=cfg.camera_jitter_s,
-                late_capture_s=cfg.late_capture_s,
-                seed=cfg.seed,
-                nice=cfg.harness_nice,
-                renderer=cfg.renderer,
-            )
-        )
+        side = CameraSide(cfg.camera_side([s.folder for s in self.setups], board.name))
         sitl: Px4Sitl | None = None
         with World(n) as world, contextlib.ExitStack() as stack:
             try:

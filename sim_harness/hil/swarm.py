@@ -31,7 +31,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -89,6 +89,28 @@ class HilConfig:
     harness_nice: int = -10
     renderer: str = DEFAULT_RENDERER  # sim_harness.sim.renderers: what draws the camera images
 
+    def camera_side(self, folders: Sequence[Path], board_name: str) -> CameraSideConfig:
+        """The camera process's configuration for drones whose files live in `folders`: each
+        drone's capture phase (spread over the period) and each camera's transfer delay, drawn
+        from `seed`."""
+        n = len(folders)
+        rng = np.random.default_rng(self.seed)
+        period = 1.0 / self.camera_rate_hz
+        phase_s = (np.arange(n) + rng.uniform(0, 1, n)) * period / n
+        delay_s = rng.uniform(*self.camera_delay_s, (n, 6))
+        return CameraSideConfig(
+            folders=tuple(folders),
+            board_name=board_name,
+            phase_s=tuple(float(p) for p in phase_s),
+            delay_s=tuple(tuple(float(d) for d in row) for row in delay_s),
+            rate_hz=self.camera_rate_hz,
+            jitter_s=self.camera_jitter_s,
+            late_capture_s=self.late_capture_s,
+            seed=self.seed,
+            nice=self.harness_nice,
+            renderer=self.renderer,
+        )
+
 
 @dataclass
 class HilRun:
@@ -135,10 +157,6 @@ class HilSwarm:
             scenario.initial_pos_world_enu,
             scenario.initial_yaw_rad,
         )
-        rng = np.random.default_rng(self.config.seed)
-        period = 1.0 / self.config.camera_rate_hz
-        self.phase_s = (np.arange(n) + rng.uniform(0, 1, n)) * period / n
-        self.delay_s = rng.uniform(*self.config.camera_delay_s, (n, 6))
         pos = scenario.initial_pos_world_enu
         self.homes = np.column_stack([pos[:, :2], np.zeros(n)])
         self.setups = [
@@ -166,20 +184,7 @@ class HilSwarm:
         cfg = self.config
         board = PoseBoard(self.scenario.n_agents)
         board.write(self.vehicle.state.pos_world_enu, self.vehicle.q_world_body)
-        side = CameraSide(
-            CameraSideConfig(
-                folders=tuple(setup.folder for setup in self.setups),
-                board_name=board.name,
-                phase_s=tuple(float(p) for p in self.phase_s),
-                delay_s=tuple(tuple(float(d) for d in row) for row in self.delay_s),
-                rate_hz=cfg.camera_rate_hz,
-                jitter_s=cfg.camera_jitter_s,
-                late_capture_s=cfg.late_capture_s,
-                seed=cfg.seed,
-                nice=cfg.harness_nice,
-                renderer=cfg.renderer,
-            )
-        )
+        side = CameraSide(cfg.camera_side([setup.folder for setup in self.setups], board.name))
         self.camera_pid = side.pid
         for setup, state in zip(self.setups, self._states(), strict=True):
             drone = HilDrone(
