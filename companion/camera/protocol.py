@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import binascii
 import dataclasses
-import json
 import math
 import struct
 from dataclasses import dataclass
@@ -20,6 +19,7 @@ from typing import Any, NamedTuple, TypeAlias
 import numpy as np
 import numpy.typing as npt
 
+from companion.camera.hello import TEXT_MAX_CHARS, build_hello_payload, is_uid, parse_hello_payload
 from companion.errors import CompanionError
 
 MAGIC = b"\xa5\x5a"
@@ -175,24 +175,22 @@ def encode_frame(
     return head + payload
 
 
-def _is_hex_id(text: object) -> bool:
-    return (
-        isinstance(text, str)
-        and 0 < len(text) <= 64
-        and len(text) % 2 == 0
-        and set(text.lower()) <= set("0123456789abcdef")
-    )
-
-
 def hello_payload(unique_id: bytes | str, firmware: str, platform: str = "") -> bytes:
-    """ASCII JSON {"uid","fw","proto","omv"}: fixed key order, no spaces (as the firmware)."""
-    uid = unique_id.hex() if isinstance(unique_id, bytes | bytearray) else unique_id.lower()
-    if not _is_hex_id(uid):
+    """ASCII JSON {"uid","fw","proto","omv"}: fixed key order, no spaces (as the firmware).
+
+    `unique_id` as raw bytes or hex (either case; sent lowercase); `firmware` and `platform`
+    printable ASCII, at most 64 characters each (the rules in `companion.camera.hello`).
+    """
+    uid = unique_id.hex() if isinstance(unique_id, bytes | bytearray) else str(unique_id).lower()
+    if not is_uid(uid):
         raise ProtocolError(f"unique_id: {unique_id!r} is not 2..64 hex digits (even count)")
-    if len(firmware) > 64 or len(platform) > 64:
-        raise ProtocolError("firmware/platform: at most 64 characters")
-    body = {"uid": uid, "fw": firmware, "proto": PROTOCOL_VERSION, "omv": platform}
-    return json.dumps(body, separators=(",", ":")).encode("ascii")
+    payload = build_hello_payload(uid, firmware, platform, PROTOCOL_VERSION)
+    if payload is None:
+        raise ProtocolError(
+            f"firmware/platform: {firmware!r}, {platform!r} must be printable ASCII, "
+            f"at most {TEXT_MAX_CHARS} characters"
+        )
+    return payload
 
 
 def encode_hello(
@@ -309,20 +307,10 @@ def _decode(h: _Header, payload: bytes) -> Message | None:
             None if gain == I16_UNAVAILABLE else gain / 100,
             None if temp == I16_UNAVAILABLE else temp / 100,
         )  # fmt: skip
-    try:
-        body = json.loads(payload)
-        uid, firmware, proto = body["uid"], body["fw"], body["proto"]
-        platform = body.get("omv", "")
-    except (ValueError, TypeError, KeyError, AttributeError):
+    body = parse_hello_payload(payload, h.version)
+    if body is None:
         return None
-    strings_ok = all(isinstance(s, str) and len(s) <= 64 for s in (firmware, platform))
-    if (
-        not (strings_ok and _is_hex_id(uid))
-        or isinstance(proto, bool)
-        or not isinstance(proto, int)
-    ):
-        return None
-    return HelloMessage(camera_id, seq, timestamp_us, uid.lower(), firmware, proto, platform)
+    return HelloMessage(camera_id, seq, timestamp_us, *body)
 
 
 class FrameParser:

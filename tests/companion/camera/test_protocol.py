@@ -499,3 +499,65 @@ def test_parsing_is_cheap_on_frames_and_on_garbage() -> None:
     elapsed = time.thread_time() - start
     assert n == 500
     assert elapsed < 2.0  # typically ~0.05 s: 500 frames (2 MB) plus 4 MB of noise
+
+
+# --- HELLO rules at their boundaries (docs/camera-protocol.md, "HELLO payload") ----------------
+
+
+def hello_bytes(body: bytes) -> bytes:
+    """A CRC-valid v1 HELLO carrying `body` as its payload, whatever it holds."""
+    return raw_message(msg_type=MessageType.HELLO, pixel_format=PixelFormat.NONE, payload=body)
+
+
+def hello_json(uid: str = "ab", fw: str = "f", proto: object = 1, omv: str = "") -> bytes:
+    import json
+
+    return json.dumps({"uid": uid, "fw": fw, "proto": proto, "omv": omv}).encode()
+
+
+@pytest.mark.parametrize(
+    ("body", "accepted"),
+    [
+        (hello_json(uid="ab"), True),  # shortest uid: 2 digits
+        (hello_json(uid="a"), False),  # odd count
+        (hello_json(uid="0" * 64), True),  # longest: 64 digits
+        (hello_json(uid="0" * 66), False),
+        (hello_json(uid="3a0025000d51363036383832"), True),  # STM32F7: 12 bytes
+        (hello_json(uid="3A0025000D51363036383832"), False),  # uppercase: not what a camera sends
+        (hello_json(uid="aB"), False),
+        (hello_json(proto=1), True),
+        (hello_json(proto=0), False),
+        (hello_json(proto=-1), False),
+        (hello_json(proto=2), False),  # a v2 script inside a v1 header
+        (hello_json(proto=True), False),
+        (hello_json(proto=1.0), False),
+        (hello_json(fw="x" * 64), True),
+        (hello_json(fw="x" * 65), False),
+        (hello_json(omv="~ !"), True),  # printable ASCII edges
+        (hello_json(fw="caf\u00e9"), False),  # ASCII bytes (\u00e9 escape) but not ASCII text
+        (hello_json(fw="a\tb"), False),  # a control character
+        ('{"uid":"ab","fw":"café","proto":1}'.encode(), False),  # UTF-8: not ASCII JSON
+        (b'{"uid":"ab","fw":"f","proto":1}', True),  # omv is optional
+        (b'["ab","f",1]', False),  # not an object
+    ],
+)
+def test_hello_rules_at_their_boundaries(body: bytes, accepted: bool) -> None:
+    parser = FrameParser()
+    got = parser.feed(hello_bytes(body))
+    assert (len(got) == 1) is accepted
+    assert parser.counters.invalid_messages == (0 if accepted else 1)
+    if accepted:
+        assert isinstance(got[0], HelloMessage) and got[0].protocol_version == 1
+
+
+def test_hello_encoder_refuses_what_the_parser_would_reject() -> None:
+    for firmware in ("x" * 65, "caf\u00e9", "a\nb"):
+        with pytest.raises(ProtocolError, match="firmware/platform"):
+            encode_hello(camera_id=0, seq=0, timestamp_us=0, unique_id="ab", firmware=firmware)
+    with pytest.raises(ProtocolError, match="unique_id"):
+        encode_hello(camera_id=0, seq=0, timestamp_us=0, unique_id="0" * 66, firmware="f")
+    # The encoder normalizes a hex id typed in uppercase; the wire carries it lowercase.
+    msg = decode_one(
+        encode_hello(camera_id=0, seq=0, timestamp_us=0, unique_id="ABCD", firmware="f")
+    )
+    assert isinstance(msg, HelloMessage) and msg.unique_id == "abcd"
