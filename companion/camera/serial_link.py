@@ -36,6 +36,7 @@ import serial
 
 from companion.camera.config import DEFAULT_BAUD, CameraRigConfig, validate_baud
 from companion.camera.layout import FACE_SIZE_PX
+from companion.camera.link_stats import ErrorWindow, FrameRate
 from companion.camera.protocol import (
     FrameMessage,
     FrameParser,
@@ -51,6 +52,7 @@ logger = logging.getLogger(__name__)
 
 READ_SIZE = 65536  # bytes per os.read; a pty hands out at most 4095 at a time
 CHECK_PERIOD_S = 0.1  # how often the silence watchdog looks (asyncio time)
+ERROR_LOG_EVERY_S = 10.0  # while errors go on, log them at most this often (last_error: always)
 
 
 @dataclass(frozen=True)
@@ -68,7 +70,10 @@ class LinkStatus:
     connects: int  # successful opens
     reconnects: int  # successful opens after a lost connection
     last_frame_age_s: float | None  # now - receive time of the latest frame; None: no frame yet
-    last_error: str | None  # why the last connection ended or the last open failed
+    last_error: str | None  # why the last connection ended, the last open failed, or the
+    # parser errors of the last 1 s window that held any ("bad header x12 in the last 1.0 s")
+    last_error_age_s: float | None  # now - when last_error was set; None: no error yet
+    fps: float  # 64x64 frames published per second over the last 2 s
     camera_status: StatusMessage | None  # latest STATUS from the camera (fps, drops, exposure)
 
 
@@ -113,6 +118,10 @@ class SerialCameraLink:
         self._rejected_frames = 0
         self._connects = 0
         self._last_error: str | None = None
+        self._last_error_s = 0.0
+        self._frame_rate = FrameRate()
+        self._error_window = ErrorWindow()
+        self._last_error_log_s: float | None = None
 
     @classmethod
     def from_config(
@@ -141,6 +150,7 @@ class SerialCameraLink:
         """A snapshot of the link's state and counters."""
         frame = self._slot.latest()
         hello = self._hello
+        now_s = self._clock()
         return LinkStatus(
             device=self.device,
             connected=self._port is not None and self._lost is not None and not self._lost.is_set(),
@@ -152,9 +162,11 @@ class SerialCameraLink:
             counters=self._parser.counters,
             connects=self._connects,
             reconnects=max(0, self._connects - 1),
-            last_frame_age_s=None if frame is None else self._clock() - frame.receive_time_s,
+            last_frame_age_s=None if frame is None else now_s - frame.receive_time_s,
             last_error=self._last_error,
             camera_status=self._camera_status,
+            last_error_age_s=None if self._last_error is None else now_s - self._last_error_s,
+            fps=self._frame_rate.fps(now_s),
         )
 
     async def run(self) -> None:
@@ -194,7 +206,7 @@ class SerialCameraLink:
             reason = f"open failed: {exc}"
             if reason != self._last_error:
                 logger.warning("camera %s: %s", self.device, reason)
-            self._last_error = reason
+            self._set_error(reason)
             return False
         self._connects += 1
         self._parser.reset()
@@ -243,9 +255,20 @@ class SerialCameraLink:
         self._last_byte_s = now_s
         for message in self._parser.feed(data):
             self._handle(message, now_s)
+        errors = self._error_window.update(self._parser.counters, now_s)
+        if errors is not None:
+            self._set_error(errors)
+            last_log_s = self._last_error_log_s
+            if last_log_s is None or now_s - last_log_s >= ERROR_LOG_EVERY_S:
+                self._last_error_log_s = now_s
+                logger.warning("camera %s: %s", self.device, errors)
+
+    def _set_error(self, reason: str) -> None:
+        self._last_error = reason
+        self._last_error_s = self._clock()
 
     def _mark_lost(self, reason: str) -> None:
-        self._last_error = reason
+        self._set_error(reason)
         if self._lost is not None and not self._lost.is_set():
             self._lost.set()
             if self._port is not None and self._port.fd is not None:
@@ -271,6 +294,7 @@ class SerialCameraLink:
                 )
             )
             self._frames_ok += 1
+            self._frame_rate.add(now_s)
         elif isinstance(message, HelloMessage):
             previous = self._hello
             if message.seq == 0 and previous is not None:  # camera script restarted

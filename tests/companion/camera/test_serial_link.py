@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import termios
 import time
 from collections.abc import Awaitable, Callable, Iterator
@@ -244,3 +245,48 @@ def test_second_reader_cannot_steal_the_port(emulator: CameraEmulator) -> None:
         assert second.status().connects == 0 and first.status().connected
 
     run_with([first], body)
+
+
+def garbage(blocks: int, seed: int = 3) -> bytes:
+    """`blocks` fake message starts: MAGIC then 40 random bytes without 0xA5, so each block is
+    exactly one bad header (its CRC fails) and nothing in it can start another message."""
+    rng = np.random.default_rng(seed)
+    out = bytearray()
+    for _ in range(blocks):
+        body = rng.integers(0, 256, 40, dtype=np.uint8)
+        body[body == 0xA5] = 0x00
+        out += MAGIC + body.tobytes()
+    return bytes(out)
+
+
+def test_garbage_on_the_line_shows_in_counters_and_last_error_and_fps_is_measured(
+    emulator: CameraEmulator,
+) -> None:
+    link = link_for(emulator, "front")
+    junk = garbage(12)
+
+    async def body() -> None:
+        await wait_for(identified(link, emulator.uid("front")), "an identified frame")
+        # 50 Hz from the emulator: the 2 s window fills (a loaded machine may drop a few).
+        await wait_for(lambda: link.status().fps >= 20.0, "the frame rate to build up")
+        assert link.status().fps <= 51.0
+        before = link.status()
+        assert before.last_error is None and before.last_error_age_s is None
+        assert emulator.inject("front", junk)
+        await wait_for(
+            lambda: "bad header" in (link.status().last_error or ""), "the garbage reported"
+        )
+        after = link.status()
+        assert after.counters.corrupted_headers - before.counters.corrupted_headers == 12
+        assert after.counters.dropped_bytes - before.counters.dropped_bytes == len(junk)
+        # e.g. "bad header x12, 504 bytes dropped in the last 1.0 s" (a window boundary may
+        # split the burst in two: the counts are the counters' business, the words the operator's)
+        assert re.fullmatch(
+            r"bad header x\d+, \d+ bytes dropped in the last \d+\.\d s", after.last_error or ""
+        )
+        assert after.last_error_age_s is not None and 0.0 <= after.last_error_age_s < TIMEOUT_S
+        assert after.connected  # garbage is reported, not a reason to drop the camera
+        frames = after.frames_ok
+        await wait_for(lambda: link.status().frames_ok > frames + 5, "frames after the garbage")
+
+    run_with([link], body)
