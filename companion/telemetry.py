@@ -24,6 +24,13 @@ endpoints only), as every default endpoint is on loopback.
 
 Nothing here blocks the event loop: opening the session, encoding and `put` run on one worker
 thread; puts use congestion control DROP (a slow link loses telemetry, never stalls the drone).
+
+Telemetry is a side output and never grounds the drone: when the session cannot be opened (the
+listen address is not up yet, e.g. Wi-Fi still associating, or the port is taken) `open()` logs
+one warning and returns False, and `run()` keeps retrying in the background, `retry_min_s`
+doubling to `retry_max_s` (1 s to 30 s), publishing from the moment it opens. `on_event`, when
+set (the daemon sets it to its flight-log events), hears "telemetry unavailable" and
+"telemetry up".
 """
 
 from __future__ import annotations
@@ -44,7 +51,7 @@ import zenoh
 from numpy.typing import NDArray
 
 from companion import jsonable
-from companion.errors import ConfigError, TelemetryError
+from companion.errors import ConfigError
 from companion.sections import require_bool, section_from_dict
 from companion.validation import require_range
 
@@ -85,6 +92,8 @@ class TelemetryConfig:
     rate_hz: float = 5.0
     preview_every_s: float | None = None  # None: no preview images
     key_prefix: str = "swarm"
+    retry_min_s: float = 1.0  # first wait before re-opening a session that could not open
+    retry_max_s: float = 30.0  # the wait doubles up to this
 
     def __post_init__(self) -> None:
         s = SECTION
@@ -110,6 +119,8 @@ class TelemetryConfig:
         require_range(f"{s}.rate_hz", self.rate_hz, 0.0, 100.0, low_inclusive=False)
         if self.preview_every_s is not None:
             require_range(f"{s}.preview_every_s", self.preview_every_s, 0.1, 3600.0)
+        require_range(f"{s}.retry_min_s", self.retry_min_s, 0.0, 60.0, low_inclusive=False)
+        require_range(f"{s}.retry_max_s", self.retry_max_s, self.retry_min_s, 600.0)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TelemetryConfig:
@@ -171,21 +182,50 @@ class TelemetryPublisher:
         self._session: zenoh.Session | None = None
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._executor: ThreadPoolExecutor | None = None
+        self._open_attempts = 0
+        self._first_failure_s: float | None = None
+        self.on_event: Callable[[str, str, Any], None] | None = None  # (event, level, detail)
 
     # --- lifecycle ---------------------------------------------------------------------------
 
-    async def open(self) -> None:
-        """Open the session and declare the publishers (raises `TelemetryError`)."""
+    async def open(self) -> bool:
+        """Open the session and declare the publishers; True once open (or when disabled).
+
+        False if Zenoh refused (listen address not available, port taken): logged once as a
+        warning, and `run()` retries in the background. Never raises for that.
+        """
         if not self.config.enabled or self._session is not None:
-            return
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="telemetry")
+            return True
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="telemetry")
+        self._open_attempts += 1
         loop = asyncio.get_running_loop()
         try:
             await loop.run_in_executor(self._executor, self._open_session)
         except zenoh.ZError as exc:
-            self._executor.shutdown(wait=False)
-            self._executor = None
-            raise TelemetryError(f"cannot open the telemetry session: {exc}") from exc
+            self._last_error = f"cannot open the telemetry session: {exc}"
+            if self._first_failure_s is None:
+                self._first_failure_s = self._clock()
+                cfg = self.config
+                log.warning(
+                    "telemetry unavailable, flying without it; retrying every %g..%g s: %s",
+                    cfg.retry_min_s,
+                    cfg.retry_max_s,
+                    exc,
+                )
+                self._emit("telemetry unavailable", "warning", {"error": str(exc)})
+            return False
+        if self._first_failure_s is not None:
+            after_s = round(self._clock() - self._first_failure_s, 3)
+            log.info("telemetry up after %d attempts (%.1f s)", self._open_attempts, after_s)
+            detail = {"attempts": self._open_attempts, "after_s": after_s}
+            self._emit("telemetry up", "info", detail)
+            self._first_failure_s = None
+        return True
+
+    def _emit(self, event: str, level: str, detail: Any) -> None:
+        if self.on_event is not None:
+            self.on_event(event, level, detail)
 
     def _open_session(self) -> None:
         session = zenoh.open(zenoh_config(self.config))
@@ -323,9 +363,16 @@ class TelemetryPublisher:
         return await loop.run_in_executor(self._executor, self._publish_cycle)
 
     async def run(self) -> None:
-        """Publish at `rate_hz` until cancelled (missed periods are skipped, not bunched)."""
+        """Open the session if it is not open yet (retrying with backoff), then publish at
+        `rate_hz` until cancelled (missed periods are skipped, not bunched)."""
         if not self.config.enabled:
             return
+        retry_s = self.config.retry_min_s
+        while not self.is_open:
+            if self._open_attempts > 0:  # the last attempt failed: back off first
+                await asyncio.sleep(retry_s)
+                retry_s = min(2.0 * retry_s, self.config.retry_max_s)
+            await self.open()
         period_s = 1.0 / self.config.rate_hz
         next_s = self._clock()
         while True:

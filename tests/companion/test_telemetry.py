@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from companion.errors import ConfigError, TelemetryError
+from companion.errors import ConfigError
 from companion.telemetry import TelemetryConfig, TelemetryPublisher, zenoh_config
 
 
@@ -211,16 +211,63 @@ def test_drone_can_connect_to_a_listening_ground_station() -> None:
     assert received.json_on("/setpoint")[0]["data"] == {"vel_ned": [0.0, 1.0, 0.0]}
 
 
-def test_taken_port_is_a_telemetry_error_and_close_frees_it() -> None:
+def test_taken_port_is_not_fatal_run_retries_until_it_is_free() -> None:
+    """Another process holds the listen port (or the Wi-Fi address is not up yet): open() says
+    so once and returns; run() keeps retrying and telemetry flows once the port is free."""
+    port = free_port()
+    cfg = TelemetryConfig(
+        drone_id="d5",
+        listen_endpoints=(f"tcp/127.0.0.1:{port}",),
+        retry_min_s=0.05,
+        retry_max_s=0.2,
+    )
+    holder = socket.socket()
+    holder.bind(("127.0.0.1", port))
+    holder.listen()
+    events: list[tuple[str, str, object]] = []
+
+    async def main() -> None:
+        pub = TelemetryPublisher(cfg)
+        pub.on_event = lambda event, level, detail: events.append((event, level, detail))
+        assert await pub.open() is False  # no exception: the drone flies on without telemetry
+        assert not pub.is_open and "cannot open" in (pub.stats().last_error or "")
+        assert [e[:2] for e in events] == [("telemetry unavailable", "warning")]
+        pub.update_state({"x": 1})
+        task = asyncio.create_task(pub.run())
+        try:
+            deadline = time.monotonic() + 10.0
+            while pub._open_attempts < 4:  # retrying in the background, still not open
+                assert time.monotonic() < deadline and not task.done()
+                await asyncio.sleep(0.02)
+            assert not pub.is_open and len(events) == 1  # one warning, not one per attempt
+            holder.close()  # the port is free now
+            with ground_session(connect=[f"tcp/127.0.0.1:{port}"]) as (_, received):
+                while not received.json_on("/state"):
+                    assert time.monotonic() < deadline + 10.0, "telemetry never came up"
+                    await asyncio.sleep(0.02)
+            assert received.json_on("/state")[-1]["data"] == {"x": 1}
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+            await pub.close()
+        assert events[-1][:2] == ("telemetry up", "info")
+        detail = events[-1][2]
+        assert isinstance(detail, dict) and detail["attempts"] >= 5
+
+    try:
+        asyncio.run(main())
+    finally:
+        holder.close()
+
+
+def test_close_frees_the_port() -> None:
     port = free_port()
     cfg = TelemetryConfig(drone_id="d5", listen_endpoints=(f"tcp/127.0.0.1:{port}",))
 
     async def main() -> None:
         first = TelemetryPublisher(cfg)
-        await first.open()
-        assert first.is_open
-        with pytest.raises(TelemetryError, match="cannot open"):
-            await TelemetryPublisher(cfg).open()
+        assert await first.open() and first.is_open
+        assert await TelemetryPublisher(cfg).open() is False  # taken by the first
         await first.close()
         await first.close()  # idempotent
         assert not first.is_open
@@ -266,3 +313,9 @@ def test_config_defaults_validation_and_from_dict() -> None:
         TelemetryConfig.from_dict({"endpoints": []})
     with pytest.raises(ConfigError, match="telemetry.rate_hz"):
         TelemetryConfig(rate_hz=0)
+    assert (TelemetryConfig().retry_min_s, TelemetryConfig().retry_max_s) == (1.0, 30.0)
+    assert TelemetryConfig(retry_min_s=2.0, retry_max_s=2.0).retry_max_s == 2.0  # the boundary
+    with pytest.raises(ConfigError, match=r"telemetry\.retry_max_s: 1\.9"):
+        TelemetryConfig(retry_min_s=2.0, retry_max_s=1.9)
+    with pytest.raises(ConfigError, match=r"telemetry\.retry_min_s"):
+        TelemetryConfig(retry_min_s=0.0)
