@@ -40,7 +40,10 @@ from companion.autopilot_types import (
     Autopilot,
     AutopilotConfig,
     AutopilotTelemetry,
+    BatteryState,
     FlightMode,
+    GpsFixType,
+    GpsState,
     OffboardState,
     Stamped,
 )
@@ -364,6 +367,8 @@ class MavsdkAutopilot:
                 group.create_task(self._consume(api.subscribe_in_air(), self._on_in_air))
                 group.create_task(self._consume(api.subscribe_health(), self._on_health))
                 group.create_task(self._consume(api.subscribe_home(), self._on_home))
+                group.create_task(self._consume(api.subscribe_battery(), self._on_battery))
+                group.create_task(self._consume(api.subscribe_gps_info(), self._on_gps_info))
         except* Exception as group_error:  # logged: the daemon sees stale telemetry stamps
             logger.error("autopilot telemetry stopped: %s", group_error.exceptions)
 
@@ -410,6 +415,21 @@ class MavsdkAutopilot:
         local_ned = tuple(float(c) if math.isfinite(float(c)) else 0.0 for c in local)
         value = HomePosition(position, (local_ned[0], local_ned[1], local_ned[2]))
         self._telemetry = replace(self._telemetry, home=Stamped(value, t_s))
+
+    def _on_battery(self, battery: Any, t_s: float) -> None:
+        # MAVSDK 4 reports remaining_percent in 0..100 (not 0..1); NaN when PX4 does not know.
+        remaining, voltage = float(battery.remaining_percent), float(battery.voltage_v)
+        value = BatteryState(
+            remaining_pct=remaining if math.isfinite(remaining) else None,
+            voltage_v=voltage if math.isfinite(voltage) else None,
+        )
+        self._telemetry = replace(self._telemetry, battery=Stamped(value, t_s))
+
+    def _on_gps_info(self, info: Any, t_s: float) -> None:
+        name = getattr(info.fix_type, "name", "")
+        fix = GpsFixType.__members__.get(name, GpsFixType.NO_GPS)
+        value = GpsState(fix_type=fix, satellites=int(info.num_satellites))
+        self._telemetry = replace(self._telemetry, gps=Stamped(value, t_s))
 
     def _on_health(self, health: Any, t_s: float) -> None:
         self._health_ok = bool(health.is_local_position_ok and health.is_home_position_ok)

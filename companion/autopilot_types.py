@@ -64,6 +64,34 @@ class Stamped(Generic[T]):
     t_s: float
 
 
+class GpsFixType(enum.Enum):
+    """GPS fix type as MAVSDK decodes it from GPS_RAW_INT."""
+
+    NO_GPS = "no_gps"
+    NO_FIX = "no_fix"
+    FIX_2D = "fix_2d"
+    FIX_3D = "fix_3d"
+    FIX_DGPS = "fix_dgps"
+    RTK_FLOAT = "rtk_float"
+    RTK_FIXED = "rtk_fixed"
+
+
+@dataclass(frozen=True)
+class BatteryState:
+    """The flight battery as PX4 reports it (SYS_STATUS / BATTERY_STATUS); None: not measured."""
+
+    remaining_pct: float | None  # state of charge, 0..100 %
+    voltage_v: float | None  # pack voltage, V
+
+
+@dataclass(frozen=True)
+class GpsState:
+    """The GPS receiver's fix (GPS_RAW_INT)."""
+
+    fix_type: GpsFixType
+    satellites: int  # satellites used
+
+
 @dataclass(frozen=True)
 class AutopilotTelemetry:
     """Latest telemetry, each value with its receive time; None until the first one arrives.
@@ -80,6 +108,8 @@ class AutopilotTelemetry:
     armed: Stamped[bool] | None = None
     in_air: Stamped[bool] | None = None
     home: Stamped[HomePosition] | None = None  # PX4's HOME_POSITION (set on arming)
+    battery: Stamped[BatteryState] | None = None  # at PX4's SYS_STATUS/BATTERY_STATUS rate
+    gps: Stamped[GpsState] | None = None  # at PX4's GPS_RAW_INT rate
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from companion.autopilot_types import AutopilotTelemetry, OffboardState
 from companion.camera.rig import RigImage
 from companion.camera.serial_link import SerialCameraLink
 from companion.control import ControlOutput
+from companion.flight_log import TOPIC_CAMERAS
 from companion.health import HealthDecision, HealthState
 from companion.recorder import TOPIC_SETPOINT, TOPIC_TELEMETRY, FlightRecorder
 from companion.sdnotify import SdNotifier
@@ -23,6 +24,7 @@ from companion.telemetry import TelemetryPublisher
 
 log = logging.getLogger(__name__)
 LINK_REPORT_EVERY_S = 0.5
+LINK_LOG_EVERY_S = 5.0  # a /cameras record at least this often; at once on a counter change
 _LEVELS = {
     HealthState.STARTING: "info",
     HealthState.ACTIVE: "info",
@@ -67,6 +69,7 @@ class Outputs:
     ) -> None:
         self.recorder = recorder
         self.telemetry = telemetry
+        telemetry.on_event = self.event  # "telemetry unavailable" / "telemetry up" in the log
         self.notifier = notifier
         self._links = links
         self._wall_ns_of = wall_ns_of
@@ -74,6 +77,8 @@ class Outputs:
         self._last_watchdog_s = float("-inf")
         self._last_links_s = float("-inf")
         self._links_report: dict[str, Any] = {}
+        self._links_logged: tuple[Any, ...] | None = None
+        self._last_links_log_s = float("-inf")
         self.ready_sent = False
 
     def event(self, event: str, level: str, detail: Any) -> None:
@@ -112,6 +117,7 @@ class Outputs:
         if self._links and now_s - self._last_links_s >= LINK_REPORT_EVERY_S:
             self._last_links_s = now_s
             self._links_report = reports.links_payload(self._links)
+            self._log_links(now_s)
         self.telemetry.update_health(
             {
                 "state": decision.state.value,
@@ -133,6 +139,15 @@ class Outputs:
         if interval is not None and on_time and now_s - self._last_watchdog_s >= interval:
             self._last_watchdog_s = now_s
             self.notifier.watchdog()
+
+    def _log_links(self, now_s: float) -> None:
+        """Record the camera report when its counters changed, else every LINK_LOG_EVERY_S."""
+        signature = reports.links_signature(self._links_report)
+        if signature == self._links_logged and now_s - self._last_links_log_s < LINK_LOG_EVERY_S:
+            return
+        self._links_logged = signature
+        self._last_links_log_s = now_s
+        self.recorder.record(TOPIC_CAMERAS, self._links_report)
 
     def transition(self, decision: HealthDecision) -> None:
         """Log, record and announce (systemd STATUS) a state change."""

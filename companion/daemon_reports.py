@@ -29,7 +29,30 @@ def telemetry_payload(telemetry: AutopilotTelemetry, now_s: float) -> dict[str, 
     out["flight_mode"] = None if mode is None else mode.value.value
     out["armed"] = None if telemetry.armed is None else telemetry.armed.value
     out["in_air"] = None if telemetry.in_air is None else telemetry.in_air.value
+    out.update(power_and_gps_payload(telemetry, now_s))
     return out
+
+
+def _rounded(value: float | None, digits: int) -> float | None:
+    return None if value is None else round(value, digits)
+
+
+def power_and_gps_payload(telemetry: AutopilotTelemetry, now_s: float) -> dict[str, Any]:
+    """`battery` {remaining_pct (0..100), voltage_v} and `gps` {fix_type ("fix_3d", ...),
+    satellites}, each with its age (s); every value null until the autopilot reported it."""
+    battery, gps = telemetry.battery, telemetry.gps
+    return {
+        "battery": {
+            "remaining_pct": None if battery is None else _rounded(battery.value.remaining_pct, 1),
+            "voltage_v": None if battery is None else _rounded(battery.value.voltage_v, 2),
+        },
+        "battery_age_s": None if battery is None else round(now_s - battery.t_s, 4),
+        "gps": {
+            "fix_type": None if gps is None else gps.value.fix_type.value,
+            "satellites": None if gps is None else gps.value.satellites,
+        },
+        "gps_age_s": None if gps is None else round(now_s - gps.t_s, 4),
+    }
 
 
 def state_payload(
@@ -86,17 +109,51 @@ def policy_payload(output: PolicyOutput, image: RigImage) -> dict[str, Any]:
 
 
 def links_payload(links: Mapping[str, SerialCameraLink]) -> dict[str, Any]:
-    """Per face: connected, camera id, frames received, age of the latest frame, parser errors."""
+    """Per face: frame rate, parser error counters and the last error (what the ground station
+    shows), then the link's state. Counters count since the daemon started; `fps` is over the
+    last 2 s; `last_error` is "" until something went wrong, `last_error_age_s` null then."""
     out: dict[str, Any] = {}
     for face, link in links.items():
         status = link.status()
+        counters = status.counters
+        error_age_s = status.last_error_age_s
         out[face] = {
+            "fps": round(status.fps, 2),
+            "bad_headers": counters.corrupted_headers,
+            "bad_payloads": counters.corrupted_payloads,
+            "dropped_bytes": counters.dropped_bytes,
+            "seq_gaps": counters.sequence_gaps,
+            "last_error": status.last_error or "",
+            "last_error_age_s": None if error_age_s is None else round(error_age_s, 3),
+            "invalid_messages": counters.invalid_messages,
+            "missed_messages": counters.missed_messages,
             "device": status.device,
             "connected": status.connected,
             "camera_uid": status.camera_uid,
             "frames_ok": status.frames_ok,
             "age_s": None if status.last_frame_age_s is None else round(status.last_frame_age_s, 3),
             "reconnects": status.reconnects,
-            "last_error": status.last_error,
         }
     return out
+
+
+# What changes a camera record in the flight log (the rest, rates and ages, change every time).
+LINK_CHANGE_KEYS = (
+    "bad_headers",
+    "bad_payloads",
+    "dropped_bytes",
+    "seq_gaps",
+    "last_error",
+    "invalid_messages",
+    "connected",
+    "camera_uid",
+    "reconnects",
+)
+
+
+def links_signature(report: Mapping[str, Any]) -> tuple[Any, ...]:
+    """The part of a `links_payload` whose change is worth a flight-log record at once."""
+    return tuple(
+        (face, tuple(entry.get(key) for key in LINK_CHANGE_KEYS))
+        for face, entry in sorted(report.items())
+    )

@@ -11,6 +11,10 @@ e.g. the image capture time):
 | /control/setpoint      | swarm.Setpoint     | every stage of the control law, NED setpoint   |
 | /autopilot/telemetry   | swarm.Telemetry    | what the autopilot reported                    |
 | /health                | swarm.HealthEvent  | level, event, detail                           |
+| /cameras               | swarm.CameraLinks  | per face: fps, parser error counters, last error |
+
+`/cameras` is written when a counter, the last error or the connection changes (checked every
+0.5 s) and at least every 5 s otherwise; `summarize_log` keeps the last one (final counters).
 
 Foxglove opens the file as is: `foxglove.RawImage` in JSON encoding is one of its built-in image
 schemas (raw `mono8` is exact and needs no image codec on the drone).
@@ -23,6 +27,7 @@ rewrites what is readable into a complete, indexed file.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import struct
 from collections.abc import Iterator
@@ -44,6 +49,7 @@ TOPIC_POLICY = "/policy/output"
 TOPIC_SETPOINT = "/control/setpoint"
 TOPIC_TELEMETRY = "/autopilot/telemetry"
 TOPIC_HEALTH = "/health"
+TOPIC_CAMERAS = "/cameras"
 
 _UINT = {"type": "integer", "minimum": 0}
 RAW_IMAGE_SCHEMA: dict[str, Any] = {
@@ -109,6 +115,17 @@ CHANNELS: tuple[tuple[str, str, dict[str, Any]], ...] = (
         _object_schema(
             "swarm.HealthEvent",
             {"level": "info | warning | error", "event": "short name", "detail": "free form"},
+        ),
+    ),
+    (
+        TOPIC_CAMERAS,
+        "swarm.CameraLinks",
+        _object_schema(
+            "swarm.CameraLinks",
+            {
+                "<face>": "fps (last 2 s), bad_headers, bad_payloads, dropped_bytes, seq_gaps "
+                "(counts since start), last_error, connected, camera_uid, frames_ok",
+            },
         ),
     ),
 )
@@ -201,11 +218,13 @@ def summarize_log(path: str | Path) -> dict[str, Any]:
 
     Keys: path, complete, stopped_at, message_count, start_time_ns, end_time_ns, duration_s,
     channels {topic: {count, first_time_ns, last_time_ns}}, health_events [{time_ns, level,
-    event, detail}], metadata {name: {key: value}}.
+    event, detail}], cameras {face: {fps, bad_headers, ...}} (the last `/cameras` record: the
+    final counters), metadata {name: {key: value}}.
     """
     reader = LogReader(Path(path))
     channels: dict[str, dict[str, int]] = {}
     health: list[dict[str, Any]] = []
+    cameras: dict[str, Any] = {}
     start: int | None = None
     end: int | None = None
     count = 0
@@ -220,6 +239,10 @@ def summarize_log(path: str | Path) -> dict[str, Any]:
         entry["count"] += 1
         entry["first_time_ns"] = min(entry["first_time_ns"], t)
         entry["last_time_ns"] = max(entry["last_time_ns"], t)
+        if message.topic == TOPIC_CAMERAS:
+            with contextlib.suppress(ValueError):
+                latest = message.json()
+                cameras = latest if isinstance(latest, dict) else cameras
         if message.topic == TOPIC_HEALTH:
             try:
                 event = message.json()
@@ -241,6 +264,7 @@ def summarize_log(path: str | Path) -> dict[str, Any]:
         "duration_s": 0.0 if start is None or end is None else (end - start) / 1e9,
         "channels": channels,
         "health_events": health,
+        "cameras": cameras,
         "metadata": reader.metadata,
     }
 
@@ -267,9 +291,30 @@ def format_summary(summary: dict[str, Any], max_events: int = 20) -> str:
         )
     if len(events) > max_events:
         lines.append(f"  ... {len(events) - max_events} more")
+    lines.extend(_camera_lines(summary.get("cameras") or {}))
     if summary["stopped_at"]:
         lines.append(f"read stopped early: {summary['stopped_at']}")
     return "\n".join(lines)
+
+
+def _camera_lines(cameras: dict[str, Any]) -> list[str]:
+    """The final camera counters, one line per face (none if the log has no `/cameras`)."""
+    if not cameras:
+        return []
+    lines = ["cameras (final counters):"]
+    for face, entry in cameras.items():
+        if not isinstance(entry, dict):
+            continue
+        fps = entry.get("fps")
+        lines.append(
+            f"  {face:<6} {'?' if fps is None else f'{fps:.1f}'} fps  "
+            f"bad headers {entry.get('bad_headers', '?')}  "
+            f"bad payloads {entry.get('bad_payloads', '?')}  "
+            f"dropped {entry.get('dropped_bytes', '?')} B  "
+            f"seq gaps {entry.get('seq_gaps', '?')}"
+            + (f"  last error: {entry['last_error']}" if entry.get("last_error") else "")
+        )
+    return lines
 
 
 def recover_log(source: str | Path, destination: str | Path) -> int:

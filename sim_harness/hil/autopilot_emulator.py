@@ -71,7 +71,7 @@ class EmulatorConfig:
     component_id: int = 1
     heartbeat_rate_hz: float = 1.0
     telemetry_rate_hz: float = 30.0  # LOCAL_POSITION_NED, ATTITUDE(_QUATERNION), GLOBAL_POSITION
-    status_rate_hz: float = 2.0  # SYS_STATUS, EXTENDED_SYS_STATE, HOME_POSITION
+    status_rate_hz: float = 2.0  # SYS_STATUS (battery), EXTENDED_SYS_STATE, HOME_POSITION, GPS
     physics_rate_hz: float = 50.0
     start_mode: Px4Mode = Px4Mode.HOLD
     start_armed: bool = False
@@ -351,6 +351,7 @@ class AutopilotEmulator:
                 msgs.sys_status(mav),
                 msgs.extended_sys_state(mav, landed),
                 msgs.home_position(mav, home),
+                msgs.gps_raw_int(mav, t_ms, state, home),
             ]
         for msg in out:
             self._send(msg)

@@ -143,6 +143,30 @@ def sys_status(mav: mavlink.MAVLink) -> mavlink.MAVLink_message:
     )
 
 
+GPS_FIX_TYPE = mavlink.GPS_FIX_TYPE_3D_FIX
+GPS_SATELLITES = 12
+
+
+def gps_raw_int(
+    mav: mavlink.MAVLink, time_boot_ms: int, state: VehicleStateNed, home: Home
+) -> mavlink.MAVLink_message:
+    """GPS_RAW_INT: a 3-D fix with 12 satellites at the vehicle's position (1e-7 deg, mm)."""
+    lat, lon, alt = home.to_global(state.pos_ned_m)
+    speed_cm_s = round(float(np.linalg.norm(state.vel_ned_mps[:2])) * 100.0)
+    return mav.gps_raw_int_encode(
+        time_boot_ms * 1000,
+        GPS_FIX_TYPE,
+        round(lat * 1e7),
+        round(lon * 1e7),
+        round(alt * 1000.0),
+        80,  # eph: HDOP 0.8
+        120,  # epv: VDOP 1.2
+        speed_cm_s,
+        65535,  # course over ground unknown
+        GPS_SATELLITES,
+    )
+
+
 def extended_sys_state(mav: mavlink.MAVLink, landed: LandedState) -> mavlink.MAVLink_message:
     """EXTENDED_SYS_STATE: multicopter (no VTOL state) and the landed state."""
     return mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, int(landed))

@@ -324,3 +324,49 @@ def test_mavsdk_log_lines_go_to_python_logging(sim: Sim, caplog: pytest.LogCaptu
     finally:
         mavsdk.log_unsubscribe()
     assert any("MAVSDK version" in r.getMessage() for r in caplog.records)
+
+
+# -- battery and GPS ------------------------------------------------------------------------------
+
+
+def test_battery_and_gps_fix_arrive_stamped_in_px4_units(sim: Sim) -> None:
+    """SYS_STATUS (80 %, 16.2 V) and GPS_RAW_INT (3-D fix, 12 satellites) from the emulator,
+    through MAVSDK: the percentage stays a percentage (MAVSDK 4 reports 0..100, not 0..1)."""
+    from companion.autopilot_types import GpsFixType
+    from companion.daemon_reports import power_and_gps_payload
+    from sim_harness.hil import px4_messages
+
+    _, config = sim(hovering=True)
+
+    def clock() -> float:
+        return time.monotonic() + 1000.0
+
+    async def body() -> None:
+        async with MavsdkAutopilot(config, clock=clock) as autopilot:
+            await until(lambda: autopilot.telemetry().battery is not None)
+            await until(lambda: autopilot.telemetry().gps is not None)
+            tel = autopilot.telemetry()
+            assert tel.battery is not None and tel.gps is not None
+            assert tel.battery.value.remaining_pct == pytest.approx(80.0)
+            assert tel.battery.value.voltage_v == pytest.approx(16.2, abs=1e-3)
+            assert tel.gps.value.fix_type is GpsFixType.FIX_3D
+            assert tel.gps.value.satellites == px4_messages.GPS_SATELLITES == 12
+            assert tel.battery.t_s > 1000.0 and tel.gps.t_s > 1000.0
+            payload = power_and_gps_payload(tel, clock())
+            assert payload["battery"] == {"remaining_pct": 80.0, "voltage_v": 16.2}
+            assert payload["gps"] == {"fix_type": "fix_3d", "satellites": 12}
+            assert 0.0 <= payload["battery_age_s"] < 15.0
+
+    run(body())
+
+
+def test_battery_and_gps_not_reported_yet_are_null() -> None:
+    from companion.autopilot_types import AutopilotTelemetry
+    from companion.daemon_reports import power_and_gps_payload
+
+    assert power_and_gps_payload(AutopilotTelemetry(), 5.0) == {
+        "battery": {"remaining_pct": None, "voltage_v": None},
+        "battery_age_s": None,
+        "gps": {"fix_type": None, "satellites": None},
+        "gps_age_s": None,
+    }
