@@ -8,9 +8,12 @@ Facts the adapter is built around (see FACTS.md):
 
 - MAVSDK re-sends the last offboard setpoint at 20 Hz by itself; freshness is the daemon's job.
 - `Offboard.is_active()` means "MAVSDK is streaming", not "the vehicle is in OFFBOARD": the mode
-  comes from the heartbeat (1 Hz on PX4). The adapter watches it: once the vehicle has been seen
-  in OFFBOARD, any other mode means the pilot (or a PX4 failsafe) took over, `offboard_state`
-  becomes LOST, and `set_velocity_ned` refuses to send (`OffboardLostError`).
+  comes from the heartbeat (1 Hz on PX4) and, sooner, from PX4's CURRENT_MODE (sent within ~0.1 s
+  of a change; read through MavlinkDirect, `companion.autopilot_direct`). The adapter watches both:
+  once the vehicle has been seen in OFFBOARD, any other mode means the pilot (or a PX4 failsafe)
+  took over, `offboard_state` becomes LOST, and `set_velocity_ned` refuses to send
+  (`OffboardLostError`). READY (operator engagement) streams one raw setpoint per call, so the
+  stream stops when the daemon stops; the pilot's switch to OFFBOARD makes it ACTIVE.
 - A MAVSDK command blocks an executor thread for up to ~2 s (its own timeout), and destroying
   MAVSDK under a blocked call can hang the interpreter. So calls are awaited with a timeout but
   never cancelled (`_call`), and `close()` lets them finish (at most `close_timeout_s`) before
@@ -36,6 +39,8 @@ from mavsdk.asyncio.plugins.offboard import OffboardAsync, VelocityNedYaw
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 from numpy.typing import ArrayLike, NDArray
 
+from companion import autopilot_mavlink as mav
+from companion.autopilot_direct import DirectLink
 from companion.autopilot_types import (
     Autopilot,
     AutopilotConfig,
@@ -98,6 +103,7 @@ class MavsdkAutopilot:
         self._offboard: Any = None
         self._telemetry_api: Any = None
         self._telemetry_task: asyncio.Task[None] | None = None
+        self._direct: DirectLink | None = None
         self._in_flight: set[asyncio.Future[Any]] = set()
         self._telemetry = AutopilotTelemetry()
         self._health_ok = False
@@ -153,6 +159,8 @@ class MavsdkAutopilot:
             self._action = ActionAsync(system)
             self._offboard = OffboardAsync(system)
             self._telemetry_api = TelemetryAsync(system)
+            target = await self._call("system id", system.get_system_id())
+            self._direct = DirectLink(system, own_system_id=1, target_system=int(target))
             self._telemetry_task = asyncio.create_task(
                 self._run_telemetry(), name="autopilot-telemetry"
             )
@@ -215,12 +223,58 @@ class MavsdkAutopilot:
         self._lost_reason = None
         logger.info("offboard active")
 
-    async def set_velocity_ned(self, vel_ned_mps: ArrayLike, yaw_ned_rad: float) -> None:
+    async def prepare_offboard(self) -> None:
+        if self._offboard_state in (OffboardState.ACTIVE, OffboardState.READY):
+            return
+        report = self._telemetry.mode_report
+        if report is not None and report.value.resumes_offboard:
+            current = report.value
+            logger.warning(
+                "PX4 would resume OFFBOARD on our first setpoint (%s now, OFFBOARD intended): "
+                "re-asserting %s",
+                current.mode.name,
+                current.mode.name,
+            )
+            direct = self._require(self._direct)
+            result = await self._call("re-assert mode", direct.set_mode(current.custom_mode))
+            if result != 0:
+                raise AutopilotError(
+                    f"PX4 refused to stay in {current.mode.name} (DO_SET_MODE result {result}): "
+                    "it would resume OFFBOARD on our setpoints"
+                )
+            await self._wait_until(
+                lambda: not self._resumes_offboard(), self.config.command_timeout_s, "CURRENT_MODE"
+            )
+        self._offboard_state = OffboardState.READY
+        self._lost_reason = None
+
+    def _resumes_offboard(self) -> bool:
+        report = self._telemetry.mode_report
+        return report is not None and report.value.resumes_offboard
+
+    async def stream_velocity_ned(self, vel_ned_mps: ArrayLike, yaw_ned_rad: float) -> None:
+        vel = self._checked(vel_ned_mps, yaw_ned_rad)
+        if self._offboard_state is not OffboardState.READY:
+            raise AutopilotError("not READY: call prepare_offboard() first")
+        direct = self._require(self._direct)
+        north, east, down = (float(v) for v in vel)
+        t_ms = int(self._clock() * 1000.0)
+        fields = mav.velocity_setpoint_fields(
+            direct.target_system, t_ms, (north, east, down), yaw_ned_rad
+        )
+        await self._call("setpoint stream", direct.send_setpoint(fields))
+
+    @staticmethod
+    def _checked(vel_ned_mps: ArrayLike, yaw_ned_rad: float) -> FloatArray:
         vel = np.asarray(vel_ned_mps, dtype=np.float64)
         if vel.shape != (3,) or not np.all(np.isfinite(vel)) or not math.isfinite(yaw_ned_rad):
             raise AutopilotError(
                 f"setpoint must be 3 finite m/s and a finite yaw, got {vel!r}, {yaw_ned_rad!r}"
             )
+        return vel
+
+    async def set_velocity_ned(self, vel_ned_mps: ArrayLike, yaw_ned_rad: float) -> None:
+        vel = self._checked(vel_ned_mps, yaw_ned_rad)
         if self._offboard_state is OffboardState.LOST:
             raise OffboardLostError(f"offboard lost: {self._lost_reason}")
         if self._offboard_state is not OffboardState.ACTIVE:
@@ -230,6 +284,8 @@ class MavsdkAutopilot:
     async def stop_offboard(self) -> None:
         previous = self._offboard_state
         self._offboard_state = OffboardState.INACTIVE
+        if previous is OffboardState.READY:
+            logger.info("setpoint stream stopped (the vehicle was never switched to OFFBOARD)")
         if previous is OffboardState.LOST:
             logger.info("offboard stopped; the pilot has control, no mode change")
         if previous is OffboardState.ACTIVE:
@@ -343,6 +399,7 @@ class MavsdkAutopilot:
             await asyncio.wait(set(self._in_flight), timeout=self.config.close_timeout_s)
         mavsdk, self._mavsdk = self._mavsdk, None
         self._action = self._offboard = self._telemetry_api = None
+        direct, self._direct = self._direct, None
         if mavsdk is None:
             return
         if self._in_flight:
@@ -350,6 +407,8 @@ class MavsdkAutopilot:
                 "%d MAVSDK call(s) still in flight: not destroying MAVSDK", len(self._in_flight)
             )
             return
+        if direct is not None:
+            direct.destroy()
         mavsdk.destroy()
 
     async def _run_telemetry(self) -> None:
@@ -369,6 +428,8 @@ class MavsdkAutopilot:
                 group.create_task(self._consume(api.subscribe_home(), self._on_home))
                 group.create_task(self._consume(api.subscribe_battery(), self._on_battery))
                 group.create_task(self._consume(api.subscribe_gps_info(), self._on_gps_info))
+                if self._direct is not None:
+                    group.create_task(self._direct.run(self._on_status, self._on_mode_report))
         except* Exception as group_error:  # logged: the daemon sees stale telemetry stamps
             logger.error("autopilot telemetry stopped: %s", group_error.exceptions)
 
@@ -394,10 +455,29 @@ class MavsdkAutopilot:
     def _on_flight_mode(self, raw: Any, t_s: float) -> None:
         mode = FlightMode.__members__.get(getattr(raw, "name", ""), FlightMode.UNKNOWN)
         self._telemetry = replace(self._telemetry, flight_mode=Stamped(mode, t_s))
-        if self._offboard_state is OffboardState.ACTIVE and mode is not FlightMode.OFFBOARD:
+        self._mode_seen(mode, "heartbeat")
+
+    def _on_status(self, status: mav.VehicleStatus) -> None:
+        self._telemetry = replace(self._telemetry, status=Stamped(status, self._clock()))
+
+    def _on_mode_report(self, report: mav.ModeReport) -> None:
+        t_s = self._clock()
+        self._telemetry = replace(
+            self._telemetry,
+            mode_report=Stamped(report, t_s),
+            flight_mode=Stamped(report.mode, t_s),
+        )
+        self._mode_seen(report.mode, "CURRENT_MODE")
+
+    def _mode_seen(self, mode: FlightMode, source: str) -> None:
+        """The vehicle's mode, from a heartbeat or CURRENT_MODE: engaged, or taken over."""
+        if self._offboard_state is OffboardState.READY and mode is FlightMode.OFFBOARD:
+            self._offboard_state = OffboardState.ACTIVE
+            logger.info("offboard active: the pilot or ground station switched to OFFBOARD")
+        elif self._offboard_state is OffboardState.ACTIVE and mode is not FlightMode.OFFBOARD:
             self._offboard_state = OffboardState.LOST
             self._lost_reason = f"vehicle switched to {mode.name} (pilot or PX4 failsafe)"
-            logger.warning("offboard lost: %s", self._lost_reason)
+            logger.warning("offboard lost (seen in %s): %s", source, self._lost_reason)
 
     def _on_armed(self, armed: Any, t_s: float) -> None:
         self._telemetry = replace(self._telemetry, armed=Stamped(bool(armed), t_s))

@@ -11,7 +11,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Generic, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -20,6 +20,9 @@ from companion.errors import ConfigError
 from companion.geo import HomePosition
 from companion.sections import require_bool, section_from_dict
 from companion.validation import require_range
+
+if TYPE_CHECKING:
+    from companion.autopilot_mavlink import ModeReport, VehicleStatus
 
 FloatArray = NDArray[np.float64]
 T = TypeVar("T")
@@ -49,11 +52,14 @@ class FlightMode(enum.Enum):
 
 
 class OffboardState(enum.Enum):
-    """INACTIVE: not commanding. ACTIVE: commanding, vehicle seen in OFFBOARD. LOST: it left."""
+    """INACTIVE: not commanding. READY: streaming hover setpoints so that the pilot or ground
+    station can switch to OFFBOARD ("operator" engagement; the switch makes it ACTIVE).
+    ACTIVE: commanding, vehicle seen in OFFBOARD. LOST: it left."""
 
     INACTIVE = "inactive"
     ACTIVE = "active"
     LOST = "lost"
+    READY = "ready"
 
 
 @dataclass(frozen=True)
@@ -110,6 +116,8 @@ class AutopilotTelemetry:
     home: Stamped[HomePosition] | None = None  # PX4's HOME_POSITION (set on arming)
     battery: Stamped[BatteryState] | None = None  # at PX4's SYS_STATUS/BATTERY_STATUS rate
     gps: Stamped[GpsState] | None = None  # at PX4's GPS_RAW_INT rate
+    status: Stamped[VehicleStatus] | None = None  # every autopilot HEARTBEAT: failsafe, liveness
+    mode_report: Stamped[ModeReport] | None = None  # CURRENT_MODE: the intended mode (PX4 >= 1.15)
 
 
 @dataclass(frozen=True)
@@ -120,7 +128,9 @@ class AutopilotConfig:
     `offboard_prestream_s`: how long the first setpoint streams before OFFBOARD is requested
     (PX4 wants > 1 s). `setpoint_rate_hz`: the rate the daemon sends setpoints at (PX4 needs
     > 2 Hz; MAVSDK re-sends the last one at 20 Hz regardless). `failsafe_action`: what
-    `failsafe()` (and `close()` while commanding) switches to.
+    `failsafe()` (and `close()` while commanding) switches to. `heartbeat_timeout_s`: no
+    HEARTBEAT from the autopilot for this long means the link to it (or PX4 itself) is gone: the
+    flight mode is unknown, so the daemon hovers and then runs its failsafe (PX4 sends 1 Hz).
     """
 
     url: str = "udpin://127.0.0.1:14540"
@@ -135,6 +145,7 @@ class AutopilotConfig:
     failsafe_action: str = "hold"
     setpoint_rate_hz: float = 10.0
     close_timeout_s: float = 2.5
+    heartbeat_timeout_s: float = 3.0
 
     def __post_init__(self) -> None:
         s = SECTION
@@ -173,6 +184,9 @@ class AutopilotConfig:
             )
         require_range(f"{s}.setpoint_rate_hz", self.setpoint_rate_hz, 10.0, 100.0)
         require_range(f"{s}.close_timeout_s", self.close_timeout_s, 0.0, 30.0)
+        require_range(
+            f"{s}.heartbeat_timeout_s", self.heartbeat_timeout_s, 1.5, 60.0, low_inclusive=True
+        )
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> AutopilotConfig:
@@ -198,6 +212,17 @@ class Autopilot(Protocol):
         After a LOST offboard this takes the vehicle back from the pilot: call it only when the
         operator asks for it.
         """
+
+    async def prepare_offboard(self) -> None:
+        """Get ready for the pilot's switch to OFFBOARD ("operator" engagement): state READY.
+
+        If PX4 would resume OFFBOARD by itself on the first setpoint (left by a failsafe with
+        OFFBOARD still intended), re-assert the mode it is in first, so that only the pilot's or
+        ground station's switch engages. Raises `AutopilotError` if that is refused.
+        """
+
+    async def stream_velocity_ned(self, vel_ned_mps: ArrayLike, yaw_ned_rad: float) -> None:
+        """While READY: send one setpoint (no re-sending: stop calling and the stream stops)."""
 
     async def set_velocity_ned(self, vel_ned_mps: ArrayLike, yaw_ned_rad: float) -> None:
         """Command a NED velocity (3,) m/s and a NED yaw (rad) while offboard is ACTIVE."""

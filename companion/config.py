@@ -42,7 +42,8 @@ from companion.validation import require_range
 
 SECTIONS = ("drone", "cameras", "policy", "control", "autopilot", "recorder", "telemetry", "daemon")
 REQUIRED_SECTIONS = ("cameras", "policy")
-ENGAGE_MODES = ("auto", "never")
+ENGAGE_MODES = ("operator", "ground", "auto", "never")
+UNIX_PATH_MAX = 107  # bytes of a unix socket path (sun_path is 108 with its NUL)
 LOG_LEVELS = ("debug", "info", "warning", "error")
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 T = TypeVar("T")
@@ -77,9 +78,17 @@ class DaemonConfig:
       (`[autopilot].failsafe_action`, Hold or Land), then the daemon stops commanding.
     - `inference_budget_s`: how long a tick waits for the inference of the image it just took;
       a slower model's result is used by a later tick (shorter than the period; None: half).
-    - `engage`: "auto" requests OFFBOARD once the pipeline is healthy (and, if
-      `engage_requires_airborne`, the vehicle armed and in the air: on the ground the altitude
-      floor would make it climb); "never" runs everything but never commands (bench tests).
+    - `engage`: who engages OFFBOARD. "operator" (the default): once the pipeline is healthy the
+      daemon streams hover setpoints and the pilot or the ground station switches the vehicle to
+      OFFBOARD; "ground": the daemon requests OFFBOARD itself, but only after `companion engage`
+      on the control socket (the ground station runs it over SSH); "auto": the daemon requests
+      OFFBOARD as soon as it is healthy (simulation harnesses only: no operator action at all);
+      "never": runs everything but never commands (bench tests). Every mode waits, if
+      `engage_requires_airborne`, for the vehicle armed and in the air (on the ground the
+      altitude floor would make it climb), and never engages during a PX4 failsafe or without
+      the autopilot's heartbeat.
+    - `control_socket`: the local control channel (`companion engage|disengage|status`), a unix
+      socket only root and the service user can reach (mode 0660 in a 0750 directory); "" : none.
     - `engage_retry_s`: wait after a refused OFFBOARD request before trying again.
     - `telemetry_max_age_s`: attitude and position older than this are not used (hover).
     - `watchdog_max_late_s`: a tick starting later than this after its deadline withholds the
@@ -92,7 +101,8 @@ class DaemonConfig:
     stale_hover_after_s: float = 0.3
     failsafe_after_s: float = 3.0
     inference_budget_s: float | None = None
-    engage: str = "auto"
+    engage: str = "operator"
+    control_socket: str = "/run/vision-swarm/control.sock"
     engage_requires_airborne: bool = True
     engage_retry_s: float = 2.0
     telemetry_max_age_s: float = 0.5
@@ -119,7 +129,20 @@ class DaemonConfig:
                 high_inclusive=False,
             )
         if self.engage not in ENGAGE_MODES:
-            raise ConfigError(f"{s}.engage: {self.engage!r} must be one of auto, never")
+            raise ConfigError(
+                f"{s}.engage: {self.engage!r} must be one of {', '.join(ENGAGE_MODES)}"
+            )
+        if not isinstance(self.control_socket, str) or (
+            self.control_socket
+            and (
+                not self.control_socket.startswith("/")
+                or len(self.control_socket.encode()) > UNIX_PATH_MAX
+            )
+        ):
+            raise ConfigError(
+                f"{s}.control_socket: {self.control_socket!r} must be an absolute path of at most "
+                f'{UNIX_PATH_MAX} bytes, or "" for none'
+            )
         require_bool(f"{s}.engage_requires_airborne", self.engage_requires_airborne)
         require_range(f"{s}.engage_retry_s", self.engage_retry_s, 0.0, 600.0)
         require_range(

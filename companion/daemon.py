@@ -16,7 +16,8 @@ One asyncio program (`Daemon.run`), tasks under a TaskGroup:
      policy's worker thread) and wait for it at most `inference_budget_s` (a slower result is used
      by a later tick);
   2. control law on the latest valid policy output (attitude at capture, current position);
-  3. `HealthMonitor.step` (companion.health) decides: fly, hover, engage, failsafe, release;
+  3. `HealthMonitor.step` (companion.health) decides: fly, hover, engage or stream (who may
+     engage and when: `companion.daemon_engage`), failsafe, release;
   4. the setpoint goes to the autopilot; then the side outputs (MCAP record, telemetry, sd_notify).
 
 systemd: READY=1 the first time the pipeline is healthy; WATCHDOG=1 from the loop itself, only
@@ -26,6 +27,10 @@ restart: the health state machine hovers, then fails safe (Hold/Land).
 
 SIGTERM/SIGINT: stop the loop, zero velocity, offboard stop (Hold), close the logs and the links,
 return normally (exit 0). Every shutdown step is bounded by `shutdown_timeout_s`.
+
+The control socket (`companion.control_channel`) takes `companion engage|disengage|status`. A
+missing autopilot heartbeat (`[autopilot] heartbeat_timeout_s`) is a hover, then the failsafe:
+without it the vehicle's mode is unknown.
 """
 
 from __future__ import annotations
@@ -41,16 +46,18 @@ from typing import Any, TypeVar
 
 from companion import daemon_reports as reports
 from companion import frames
-from companion.autopilot_types import Autopilot
+from companion.autopilot_types import Autopilot, OffboardState
 from companion.camera.fresh_set import FreshSetWaiter
 from companion.camera.rig import Rig, RigImage, RigSnapshot
 from companion.camera.serial_link import SerialCameraLink, links_from_config, run_links
 from companion.camera.slot import FrameSource
 from companion.config import CompanionConfig
 from companion.control import ControlLaw, ControlOutput
+from companion.control_channel import ControlChannel, ControlError
 from companion.daemon_commands import Commander
+from companion.daemon_engage import Engagement
 from companion.daemon_outputs import Outputs, TickTimes
-from companion.errors import CompanionError
+from companion.errors import CompanionError, ModelError
 from companion.geo import MigrationFromHome
 from companion.health import (
     Action,
@@ -140,6 +147,15 @@ class Daemon:
         self._migration = MigrationFromHome(
             config.control.migration_point_global, self.outputs.event
         )
+        self.engagement = Engagement(
+            d.engage,
+            requires_airborne=d.engage_requires_airborne,
+            heartbeat_timeout_s=config.autopilot.heartbeat_timeout_s,
+            events=self.outputs.event,
+        )
+        self._control_channel: ControlChannel | None = None
+        if d.control_socket:
+            self._control_channel = ControlChannel(d.control_socket, self._on_control)
         self.ticks = 0
         self.skipped_ticks = 0
 
@@ -169,9 +185,15 @@ class Daemon:
             self.outputs.recorder.start()
             self.outputs.event("starting", "info", {"drone_id": self.config.drone.id})
             await self.outputs.telemetry.open()
+            await self._open_control_channel()
             if self._policy is None:
                 load = asyncio.to_thread(Policy.load, self.config.policy, clock=self._clock)
-                self._policy = await self._until_stopped(load)
+                try:
+                    self._policy = await self._until_stopped(load)
+                except ModelError as exc:  # the log says why the daemon stopped
+                    self.outputs.event("policy refused", "error", str(exc))
+                    self._stop_reason = f"policy refused: {exc}"
+                    raise
             self.outputs.event(
                 "policy loaded",
                 "info",
@@ -179,6 +201,7 @@ class Daemon:
                     "sha256": self._policy.sha256,
                     "fused": self._policy.fused,
                     "warmup_ms": 1e3 * (self._policy.warmup_latency_s or 0.0),
+                    "reference_error_mps": self._policy.reference_error_mps,  # None: no check
                 },
             )
             await self._supervise(keepalive)
@@ -190,6 +213,25 @@ class Daemon:
             if self._handle_signals:
                 for sig in (signal.SIGTERM, signal.SIGINT):
                     loop.remove_signal_handler(sig)
+
+    async def _open_control_channel(self) -> None:
+        """The control socket is for the operator; without it the drone is never engaged in
+        "ground" mode, which is safe: log why and fly on."""
+        channel = self._control_channel
+        if channel is None:
+            return
+        try:
+            await channel.open()
+        except ControlError as exc:
+            self._control_channel = None
+            log.warning("%s", exc)
+            self.outputs.event("control socket unavailable", "warning", str(exc))
+
+    def _on_control(self, command: str) -> dict[str, Any]:
+        commander = self._commander
+        offboard = commander.offboard_state if commander is not None else OffboardState.INACTIVE
+        state, reason = self.health.state, self.health.reason
+        return self.engagement.command(command, state, reason, offboard)
 
     async def _supervise(self, keepalive: asyncio.Task[None]) -> None:
         try:
@@ -319,6 +361,14 @@ class Daemon:
         self._attitudes.add_from(telemetry)
         pos_enu, yaw_enu = pose_enu(telemetry, now_s, self.config.daemon.telemetry_max_age_s)
         control, output_ok, problem = self._control(now_s, snapshot, pos_enu, yaw_enu)
+        heartbeat = self.engagement.heartbeat_problem(telemetry, now_s)
+        if heartbeat and self.health.state is not HealthState.STARTING:
+            control, output_ok, problem = None, False, heartbeat  # mode unknown: hover, failsafe
+        if self.engagement.disengage_requested:
+            self.engagement.disengage_requested = False
+            if await commander.disengage(self._law.hover(yaw_enu, "disengage")):
+                self.outputs.event("disengaged", "info", "operator: vehicle switched to HOLD")
+        gate = self.engagement.gate(telemetry, now_s, commander.may_engage(now_s))
         decision = self.health.step(
             HealthInputs(
                 now_s=now_s,
@@ -326,9 +376,17 @@ class Daemon:
                 output_ok=output_ok,
                 problem=problem,
                 offboard=commander.offboard_state,
-                engage_allowed=self._engage_allowed(now_s),
+                engage_allowed=gate.engage_allowed,
+                stream_allowed=gate.stream_allowed,
+                waiting=gate.waiting,
+                reengage_allowed=self.engagement.reengage_allowed and commander.idle,
             )
         )
+        if decision.transition is not None and decision.state is not HealthState.ACTIVE:
+            if decision.state in (HealthState.PILOT, HealthState.FAILSAFE):
+                self.engagement.ended()
+            elif decision.state is HealthState.STARTING:
+                commander.rearm()
         command, sent = await self._act(decision, control, yaw_enu)
         times = TickTimes(now_s, late_s, self._clock(), new_image, fresh)
         if collected is not None:
@@ -398,16 +456,6 @@ class Daemon:
             return f"no fresh inference: the model has been running for {now_s - since:.3f} s"
         return ""
 
-    def _engage_allowed(self, now_s: float) -> bool:
-        d, commander = self.config.daemon, self._commander
-        if d.engage != "auto" or commander is None or not commander.may_engage(now_s):
-            return False
-        if not d.engage_requires_airborne:
-            return True
-        telemetry = commander.autopilot.telemetry()
-        armed, in_air = telemetry.armed, telemetry.in_air
-        return armed is not None and armed.value and in_air is not None and in_air.value
-
     async def _act(
         self, decision: HealthDecision, control: ControlOutput | None, yaw_enu_rad: float
     ) -> tuple[ControlOutput | None, bool]:
@@ -420,6 +468,9 @@ class Daemon:
         if action in (Action.HOVER, Action.FLY):
             command = self._law.hover(yaw_enu_rad, decision.reason)
             return command, await commander.send(command)
+        if action is Action.STREAM:
+            command = self._law.hover(yaw_enu_rad, decision.reason)
+            return command, await commander.stream(command)
         if action is Action.ENGAGE:
             finite = math.isfinite(yaw_enu_rad)
             commander.engage(float(frames.yaw_enu_to_ned(yaw_enu_rad)) if finite else None)
@@ -446,6 +497,8 @@ class Daemon:
         if self._infer_task is not None:
             self._infer_task.cancel()  # the model thread itself is abandoned by policy.close
         self.outputs.event("stopped", "info", reason)
+        if self._control_channel is not None:
+            await self._control_channel.close()
         if commander is not None:
             await commander.guarded("telemetry close", self.outputs.telemetry.close())
             await commander.guarded("autopilot close", commander.autopilot.close())

@@ -7,6 +7,9 @@
 - `engage()` / `failsafe()`: start the OFFBOARD request or the failsafe (Hold/Land) in the
   background, so the loop keeps ticking during their seconds-long exchanges; a refusal is retried
   after `engage_retry_s` / `failsafe_retry_s`;
+- `stream()`: "operator" engagement: get READY (in the background, like `engage`), then send
+  one setpoint per call for the pilot's switch to OFFBOARD;
+- `disengage()`: the operator's `companion disengage`: zero velocity, then Hold;
 - `release()`: stop commanding after the pilot took over (no mode change);
 - `safe_stop()`: shutdown: wait for a running request, zero velocity, offboard stop (Hold).
 
@@ -58,13 +61,22 @@ class Commander:
         self.failsafe_done = False
         self.setpoint_errors = 0
 
+    def rearm(self) -> None:
+        """A new engagement may follow (operator/ground): the failsafe may run again."""
+        self.failsafe_done = False
+
     @property
     def offboard_state(self) -> OffboardState:
         return self.autopilot.offboard_state
 
+    @property
+    def idle(self) -> bool:
+        """No OFFBOARD, stream or failsafe request running."""
+        return self._engage_task is None and self._failsafe_task is None
+
     def may_engage(self, now_s: float) -> bool:
-        """No OFFBOARD request running and the retry delay is over."""
-        return self._engage_task is None and now_s >= self._next_engage_s
+        """No OFFBOARD or failsafe request running and the retry delay is over."""
+        return self.idle and now_s >= self._next_engage_s
 
     async def send(self, command: ControlOutput) -> bool:
         """Send the command's NED velocity and yaw; True if the autopilot took it."""
@@ -77,6 +89,45 @@ class Commander:
             if self.setpoint_errors == 1 or self.setpoint_errors % 100 == 0:
                 log.error("setpoint not sent (%d so far): %s", self.setpoint_errors, exc)
             return False
+        return True
+
+    async def stream(self, command: ControlOutput) -> bool:
+        """Operator engagement: READY first (in the background), then one setpoint per call."""
+        state = self.autopilot.offboard_state
+        if state is OffboardState.INACTIVE and self._engage_task is None:
+            self._engage_task = asyncio.create_task(self._prepare(), name="prepare-offboard")
+        if state is not OffboardState.READY:
+            return False
+        try:
+            await self.autopilot.stream_velocity_ned(command.vel_ned, float(command.yaw_ned_rad))
+        except AutopilotError as exc:
+            self.setpoint_errors += 1
+            if self.setpoint_errors == 1 or self.setpoint_errors % 100 == 0:
+                log.error("stream setpoint not sent (%d so far): %s", self.setpoint_errors, exc)
+            return False
+        return True
+
+    async def _prepare(self) -> None:
+        try:
+            await self.autopilot.prepare_offboard()
+            self._events("ready", "info", "streaming hover setpoints: switch to OFFBOARD to engage")
+        except AutopilotError as exc:
+            self._next_engage_s = self._clock() + self._engage_retry_s
+            log.warning("not ready for OFFBOARD (retry in %g s): %s", self._engage_retry_s, exc)
+            self._events("not ready", "warning", str(exc))
+        finally:
+            self._engage_task = None
+
+    async def disengage(self, hover: ControlOutput) -> bool:
+        """Stop commanding at the operator's request: zero velocity, then Hold (or stop the
+        READY stream without a mode change). True if the vehicle was left commanded."""
+        state = self.autopilot.offboard_state
+        if state is OffboardState.READY:
+            await self.guarded("stop stream", self.autopilot.stop_offboard())
+            return False
+        if state is not OffboardState.ACTIVE:
+            return False
+        await self.safe_stop(hover)
         return True
 
     def engage(self, yaw_ned_rad: float | None) -> None:

@@ -4,7 +4,7 @@ States and what the daemon commands in each:
 
 | state     | meaning                                              | command                    |
 |-----------|------------------------------------------------------|----------------------------|
-| STARTING  | not commanding yet; waits for a healthy pipeline     | none (ENGAGE when allowed) |
+| STARTING  | not commanding yet; waits for a healthy pipeline     | none (ENGAGE or STREAM)    |
 | ACTIVE    | commanding, pipeline fresh and valid                 | the control law's velocity |
 | HOVER     | commanding, pipeline stale or output invalid         | zero velocity, yaw held    |
 | FAILSAFE  | hovered longer than `failsafe_after_s`               | Hold/Land once, then none  |
@@ -15,8 +15,13 @@ The pipeline is *healthy* when the latest output is valid (`output_ok`: policy o
 bounded, control inputs valid) and fresh: the image it was computed from (its oldest tile's receive
 time, `output_time_s`) is at most `stale_after_s` old. Anything else is a hover: no fresh rig
 image, no fresh inference (a stalled model), NaN output. A hover lasting longer than
-`failsafe_after_s` escalates to FAILSAFE. FAILSAFE, PILOT and STOPPING are final: the daemon does
-not take the vehicle back on its own (restart it to re-engage).
+`failsafe_after_s` escalates to FAILSAFE. STOPPING is final. FAILSAFE and PILOT are final unless
+`reengage_allowed` ("operator" and "ground" engagement: an operator engages again, the daemon
+never does on its own): then, once the vehicle is out of OFFBOARD, back to STARTING.
+
+Engagement from STARTING, once healthy: ENGAGE (the daemon requests OFFBOARD: "auto", or "ground"
+after `companion engage`) or STREAM (stream hover setpoints so that the pilot or the ground
+station can switch to OFFBOARD: "operator"); `waiting` says why neither is allowed yet.
 
 `step()` returns the state and one `Action`; the daemon carries the action out. Times are seconds
 of the daemon's monotonic clock, passed in with every input (no clock is read here).
@@ -49,6 +54,7 @@ class HealthState(enum.Enum):
 class Action(enum.Enum):
     WAIT = "wait"  # send nothing
     ENGAGE = "engage"  # request OFFBOARD (initial zero setpoint first)
+    STREAM = "stream"  # stream hover setpoints; the pilot's switch to OFFBOARD engages
     FLY = "fly"  # send the control law's setpoint
     HOVER = "hover"  # send zero velocity, yaw held
     FAILSAFE = "failsafe"  # switch to the autopilot's failsafe (Hold/Land), once
@@ -76,7 +82,9 @@ class HealthInputs:
     output (None: none yet). `output_ok`: the latest output (this tick's) is valid;
     `problem`: why the pipeline is not producing, for the reason text ("" if nothing to say).
     `offboard`: the autopilot adapter's view. `engage_allowed`: the daemon may request OFFBOARD
-    now (config, armed, no request in flight, retry delay over).
+    now (config, armed, no request in flight, retry delay over); `stream_allowed`: it may stream
+    setpoints for the pilot's switch; `waiting`: why neither (for the reason text).
+    `reengage_allowed`: FAILSAFE and PILOT return to STARTING once out of OFFBOARD.
     """
 
     now_s: float
@@ -86,6 +94,9 @@ class HealthInputs:
     offboard: OffboardState = OffboardState.INACTIVE
     engage_allowed: bool = False
     stop_requested: bool = False
+    stream_allowed: bool = False
+    waiting: str = ""
+    reengage_allowed: bool = False
 
 
 @dataclass(frozen=True)
@@ -161,6 +172,10 @@ class HealthMonitor:
             if state is HealthState.STOPPING:
                 return self._stay(Action.WAIT, healthy)
             return self._go(now, HealthState.STOPPING, Action.STOP, "stop requested", healthy)
+        ended = state in (HealthState.FAILSAFE, HealthState.PILOT)
+        if ended and inputs.reengage_allowed and inputs.offboard is not OffboardState.ACTIVE:
+            why = "waiting for an operator to engage again"
+            return self._go(now, HealthState.STARTING, Action.WAIT, why, healthy)
         if state.final:
             return self._stay(Action.WAIT, healthy)
         commanding = state in (HealthState.ACTIVE, HealthState.HOVER)
@@ -176,7 +191,14 @@ class HealthMonitor:
                 return self._fly_or_hover(inputs, healthy)
             if healthy and inputs.engage_allowed:
                 return self._stay(Action.ENGAGE, healthy, "engaging: requesting OFFBOARD")
-            reason = "pipeline healthy, not engaged" if healthy else self._why_not(inputs)
+            if healthy and inputs.stream_allowed:
+                why = "ready: streaming hover setpoints; the pilot's switch to OFFBOARD engages"
+                return self._stay(Action.STREAM, healthy, why)
+            if not healthy:
+                reason = self._why_not(inputs)
+            else:
+                waiting = f": {inputs.waiting}" if inputs.waiting else ""
+                reason = f"pipeline healthy, not engaged{waiting}"
             return self._stay(Action.WAIT, healthy, reason)
         if state is HealthState.HOVER and not healthy:
             assert self._hover_since_s is not None

@@ -10,7 +10,12 @@ The emulator runs in one background thread: it receives commands and setpoints, 
 mode and arming rules (`px4_logic`), steps a `VehicleBackend` (default: `FirstOrderVehicle`) at
 the physics rate and streams telemetry like PX4 does for an onboard link. Test hooks: the logs of
 setpoints, commands and mode changes; `pilot_switch_mode` (the RC pilot changes mode);
-`set_link_alive(False)` (the link drops: nothing is sent and everything received is ignored).
+`set_link_alive(False)` (the link drops: nothing is sent and everything received is ignored);
+`set_heartbeat_alive(False)` (only the heartbeat stops, everything else flows);
+`set_failsafe(True)` (a PX4 failsafe such as a geofence breach: the heartbeat says CRITICAL).
+Like PX4 >= 1.15 it sends CURRENT_MODE with each heartbeat and as soon as the mode changes, with
+the intended mode (OFFBOARD while the offboard-loss failsafe waits to resume it), and reports
+MAV_STATE_CRITICAL in the heartbeat during that failsafe.
 """
 
 from __future__ import annotations
@@ -127,6 +132,9 @@ class AutopilotEmulator:
         self._setpoints: deque[SetpointRecord] = deque(maxlen=config.log_capacity)
         self._commands: deque[CommandRecord] = deque(maxlen=config.log_capacity)
         self._link_alive = True
+        self._heartbeat_alive = True
+        self._failsafe_forced = False
+        self._reported_mode: tuple[Px4Mode, Px4Mode] | None = None
         self._ignored_while_down = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -239,6 +247,16 @@ class AutopilotEmulator:
         with self._lock:
             return self._logic.set_mode(self.now_s(), mode, "pilot switch")
 
+    def set_failsafe(self, active: bool) -> None:
+        """A failsafe other than offboard loss is active (True) or over (False)."""
+        with self._lock:
+            self._failsafe_forced = active
+
+    def set_heartbeat_alive(self, alive: bool) -> None:
+        """False: no HEARTBEAT is sent (telemetry, CURRENT_MODE and answers still are)."""
+        with self._lock:
+            self._heartbeat_alive = alive
+
     def set_link_alive(self, alive: bool) -> None:
         """False: stop sending and ignore everything received, as if the radio link were cut."""
         with self._lock:
@@ -270,6 +288,7 @@ class AutopilotEmulator:
                 if readable:
                     self._receive(sock)
                 now = self.now_s()
+                self._report_mode_change()
                 for name, period in periods.items():
                     if now < due[name]:
                         continue
@@ -309,6 +328,18 @@ class AutopilotEmulator:
                 except Exception:  # one bad message must not take the emulator down
                     logger.exception("failed to handle %s", msg.get_type())
 
+    def _modes(self) -> tuple[Px4Mode, Px4Mode]:
+        """(mode flown, mode intended); call with the lock held."""
+        logic = self._logic
+        return logic.mode, Px4Mode.OFFBOARD if logic.offboard_intended else logic.mode
+
+    def _report_mode_change(self) -> None:
+        with self._lock:
+            modes = self._modes()
+        if modes != self._reported_mode:
+            self._reported_mode = modes
+            self._send(msgs.current_mode(self._mav, *modes))
+
     def _step_physics(self, now: float, dt_s: float) -> None:
         with self._lock:
             command = self._logic.update(now, self._state)
@@ -336,9 +367,14 @@ class AutopilotEmulator:
             mode, armed = self._logic.mode, self._logic.armed
             in_air = self._logic.in_air(state)
             landed = self._logic.landed_state(state)
+            modes = self._modes()
+            failsafe = self._logic.offboard_intended or self._failsafe_forced
+            heartbeat_alive = self._heartbeat_alive
         home = self.config.home
         if name == "heartbeat":
-            out = [msgs.heartbeat(mav, mode, armed, in_air)]
+            out = [msgs.current_mode(mav, *modes)]
+            if heartbeat_alive:
+                out.append(msgs.heartbeat(mav, mode, armed, in_air, failsafe))
         elif name == "telemetry":
             out = [
                 msgs.local_position(mav, t_ms, state),

@@ -115,7 +115,8 @@ def daemon_document(
         "connect_endpoints": [],
         "multicast_scouting": False,
     }
-    doc["daemon"] = {**doc["daemon"], "engage": "auto"}
+    # No operator in the loop; one control socket per drone would outgrow a unix socket path.
+    doc["daemon"] = {**doc["daemon"], "engage": "auto", "control_socket": ""}
     for section, values in overrides.items():
         doc.setdefault(section, {}).update(values)
     return doc

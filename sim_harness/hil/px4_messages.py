@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
+from pymavlink.dialects.v20 import development
 
 from companion.frames import euler_zyx_from_quat
 from sim_harness.hil.emulated_vehicle import VehicleStateNed, VelocityCommand
@@ -77,16 +78,27 @@ class Home:
 
 
 def heartbeat(
-    mav: mavlink.MAVLink, mode: Px4Mode, armed: bool, in_air: bool
+    mav: mavlink.MAVLink, mode: Px4Mode, armed: bool, in_air: bool, failsafe: bool = False
 ) -> mavlink.MAVLink_message:
-    """PX4's HEARTBEAT: quadrotor, custom mode, SAFETY_ARMED while armed."""
+    """PX4's HEARTBEAT: quadrotor, custom mode, SAFETY_ARMED while armed, CRITICAL in failsafe."""
     base_mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     if armed:
         base_mode |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     status = mavlink.MAV_STATE_ACTIVE if armed or in_air else mavlink.MAV_STATE_STANDBY
+    if failsafe:
+        status = mavlink.MAV_STATE_CRITICAL
     return mav.heartbeat_encode(
         mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base_mode, mode.custom_mode, status
     )
+
+
+def current_mode(mav: mavlink.MAVLink, mode: Px4Mode, intended: Px4Mode) -> mavlink.MAVLink_message:
+    """PX4's CURRENT_MODE (>= 1.15): the mode flown and the one the user last asked for.
+
+    PX4 sends it within ~0.1 s of a change and about once a second otherwise (measured on SITL).
+    """
+    del mav  # CURRENT_MODE is in MAVLink's development dialect, not in common
+    return development.MAVLink_current_mode_message(0, mode.custom_mode, intended.custom_mode)
 
 
 def local_position(

@@ -104,7 +104,7 @@ def document(
         },
         "recorder": {"directory": str(tmp_path / "flights")},
         "telemetry": {"listen_endpoints": [f"tcp/127.0.0.1:{telemetry_port}"]},
-        "daemon": {"failsafe_after_s": 5.0, **daemon},
+        "daemon": {"failsafe_after_s": 5.0, "engage": "auto", "control_socket": "", **daemon},
     }
 
 

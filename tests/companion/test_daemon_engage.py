@@ -1,0 +1,212 @@
+"""Who engages OFFBOARD, end to end: the daemon on the test's event loop with six pty cameras, the
+pymavlink PX4 emulator behind MAVSDK on loopback UDP, a real TorchScript policy, and the real
+control socket (`companion engage|disengage|status`).
+
+The emulator behaves like PX4 here (checked against PX4 SITL, tests/px4): it refuses OFFBOARD
+without fresh setpoints, goes back to OFFBOARD by itself when setpoints return after its
+offboard-loss failsafe (the intended mode stays OFFBOARD), reports that intended mode in
+CURRENT_MODE within a loop period of any change, and says MAV_STATE_CRITICAL during a failsafe.
+Times asserted are the daemon's own transition stamps (its clock is the test's), with margins
+far above the emulator's 20 ms loop; every other wait is a liveness bound.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from pymavlink import mavutil
+
+from companion.config import config_from_dict
+from companion.control_channel import send_command
+from companion.daemon import Daemon
+from companion.health import HealthState
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.camera_emulator import CameraEmulator
+from sim_harness.hil.px4_logic import Px4LogicConfig, Px4Mode
+
+DO_SET_MODE = 176
+GUARD_S = 20.0
+BODY_CMD_FLU = (1.0, 0.0, 0.0)
+
+
+def recording(n: int = 10) -> np.ndarray:
+    frames = np.random.default_rng(7).integers(20, 230, (n, 64, 384), dtype=np.uint8)
+    frames[:, :, ::8] = 255
+    return frames
+
+
+@pytest.fixture
+def cameras(tmp_path: Path) -> Iterator[CameraEmulator]:
+    with CameraEmulator(tmp_path / "dev", source=recording(), rate_hz=10.0) as emulator:
+        yield emulator
+
+
+@pytest.fixture
+def socket_path() -> Iterator[str]:
+    """A control socket path short enough for a unix socket (pytest's tmp_path may not be)."""
+    folder = tempfile.mkdtemp(prefix="ctl", dir="/tmp")
+    yield f"{folder}/control.sock"
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def make_px4(**px4: Any) -> AutopilotEmulator:
+    """PX4 hovering at 5 m in POSCTL, heartbeats at 1 Hz like PX4 (CURRENT_MODE on change)."""
+    config = EmulatorConfig.hovering(
+        free_udp_port(), 5.0, heartbeat_rate_hz=1.0, px4=Px4LogicConfig(**px4)
+    )
+    return AutopilotEmulator(config).start()
+
+
+def make_daemon(
+    tmp_path: Path,
+    cameras: CameraEmulator,
+    px4: AutopilotEmulator,
+    model: Path,
+    socket_path: str,
+    **daemon: Any,
+) -> Daemon:
+    document = {
+        "drone": {"id": "d1"},
+        "cameras": {"faces": cameras.faces_config()},
+        "policy": {"model_path": str(model)},
+        "autopilot": {
+            "url": f"udpin://127.0.0.1:{px4.config.client_port}",
+            "discovery_timeout_s": 5.0,
+            "health_timeout_s": 5.0,
+            "offboard_prestream_s": 0.05,
+        },
+        "recorder": {"directory": str(tmp_path / "flights")},
+        "telemetry": {"enabled": False},
+        "daemon": {"failsafe_after_s": 5.0, "control_socket": socket_path, **daemon},
+    }
+    config = config_from_dict(document)
+    return Daemon(config, handle_signals=False, clock=time.monotonic)
+
+
+async def until(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
+    start = time.monotonic()
+    while not condition():
+        if time.monotonic() - start > timeout_s:
+            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
+        await asyncio.sleep(0.01)
+
+
+async def control(path: str, command: str) -> dict[str, Any]:
+    """`companion engage|disengage|status`, from a thread (the daemon runs on this loop)."""
+    return await asyncio.to_thread(send_command, path, command)
+
+
+def set_modes(px4: AutopilotEmulator, since: int = 0) -> list[Any]:
+    return [c for c in px4.commands()[since:] if c.command == DO_SET_MODE]
+
+
+def test_operator_mode_streams_and_only_the_pilots_switch_engages(
+    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+) -> None:
+    px4 = make_px4()
+    model = make_policy_file("constant", BODY_CMD_FLU)
+    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="operator")
+
+    async def body() -> None:
+        run = asyncio.create_task(daemon.run())
+        try:
+            # Healthy: hover setpoints stream, the vehicle stays with the pilot.
+            await until(lambda: len(px4.setpoints()) >= 20, GUARD_S, "a setpoint stream")
+            assert px4.mode is Px4Mode.POSCTL and not set_modes(px4)
+            assert all(
+                abs(s.vx_mps) + abs(s.vy_mps) + abs(s.vz_mps) < 1e-6 for s in px4.setpoints()
+            )
+            assert daemon.health.state is HealthState.STARTING
+            assert "ready" in daemon.health.reason
+            refused = await control(socket_path, "engage")
+            assert not refused["ok"] and "switching the vehicle to OFFBOARD" in refused["message"]
+
+            # The pilot switches to OFFBOARD: engaged, the policy flies.
+            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+            await until(lambda: px4.setpoints()[-1].vx_mps > 0.5, GUARD_S, "flying north")
+            status = await control(socket_path, "status")
+            assert status["state"] == "active" and status["offboard"] == "active"
+
+            # The pilot takes over; the daemon stops, then streams again; the pilot re-engages.
+            assert px4.pilot_switch_mode(Px4Mode.POSCTL).name == "ACCEPTED"
+            await until(lambda: daemon.health.state is HealthState.PILOT, GUARD_S, "PILOT")
+            await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "STARTING")
+            count = len(px4.setpoints())
+            await until(lambda: len(px4.setpoints()) >= count + 10, GUARD_S, "streaming again")
+            assert px4.mode is Px4Mode.POSCTL and not set_modes(px4)
+            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "re-engaged")
+
+            # The ground station's `companion disengage`: zero velocity, then Hold.
+            reply = await control(socket_path, "disengage")
+            assert reply["ok"]
+            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
+            await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
+        finally:
+            daemon.request_stop("test over")
+            await asyncio.wait_for(run, 15.0)
+
+    try:
+        asyncio.run(body())
+    finally:
+        px4.stop()
+    assert not Path(socket_path).exists()  # removed on exit
+
+
+def test_a_restarted_daemon_does_not_take_back_px4s_offboard(
+    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+) -> None:
+    """PX4 left OFFBOARD by its offboard-loss failsafe (the companion died) and would go back to
+    OFFBOARD on the first setpoint: the new daemon re-asserts PX4's mode before streaming."""
+    px4 = make_px4(offboard_loss_mode=Px4Mode.HOLD)
+    # The crashed companion: setpoints, the pilot's switch, then silence.
+    old = mavutil.mavlink_connection(f"udpout:127.0.0.1:{px4.local_port}", source_system=1)
+    deadline = time.monotonic() + GUARD_S
+    while px4.mode is not Px4Mode.OFFBOARD and time.monotonic() < deadline:
+        old.mav.set_position_target_local_ned_send(
+            0, 1, 1, 1, 0b0000101111000111, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0
+        )
+        px4.pilot_switch_mode(Px4Mode.OFFBOARD)
+        time.sleep(0.05)
+    assert px4.mode is Px4Mode.OFFBOARD
+    old.close()
+    deadline = time.monotonic() + GUARD_S
+    while px4.mode is Px4Mode.OFFBOARD and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert px4.mode is Px4Mode.HOLD  # PX4's failsafe, OFFBOARD still intended
+
+    model = make_policy_file("constant", BODY_CMD_FLU)
+    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="operator")
+    changes = len(px4.mode_changes())
+    streamed = len(px4.setpoints())
+
+    async def body() -> None:
+        run = asyncio.create_task(daemon.run())
+        try:
+            await until(
+                lambda: len(px4.setpoints()) >= streamed + 30, GUARD_S, "the new daemon's stream"
+            )
+            await asyncio.sleep(1.0)
+            assert px4.mode is Px4Mode.HOLD  # not resumed
+            assert not px4.mode_changes()[changes:]
+            reassert = set_modes(px4)
+            assert len(reassert) == 1 and reassert[0].params[1:3] == (4.0, 3.0)  # AUTO LOITER
+            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "engaged")
+        finally:
+            daemon.request_stop("test over")
+            await asyncio.wait_for(run, 15.0)
+
+    try:
+        asyncio.run(body())
+    finally:
+        px4.stop()
