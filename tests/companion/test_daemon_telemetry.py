@@ -28,7 +28,6 @@ from companion.camera.protocol import MAGIC
 from companion.config import config_from_dict
 from companion.daemon import Daemon
 from companion.flight_log import TOPIC_CAMERAS, TOPIC_HEALTH, LogReader, summarize_log
-from companion.groundstation import monitor_zenoh_config
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
 from sim_harness.hil.camera_emulator import CameraEmulator
 
@@ -92,7 +91,11 @@ class Monitor:
     def __init__(self, port: int) -> None:
         self._lock = threading.Lock()
         self._latest: dict[str, dict[str, Any]] = {}
-        self.session = zenoh.open(monitor_zenoh_config([f"tcp/127.0.0.1:{port}"]))
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps("peer"))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        self.session = zenoh.open(conf)
         self.subscriber = self.session.declare_subscriber("swarm/**", self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
