@@ -3,19 +3,23 @@
 Checks, in order: the config file (parse + validation), the model (SHA-256 against the config and
 the sidecar, metadata contract), the six camera devices (exist, are character devices), the
 autopilot link (serial device exists; UDP/TCP are not contacted), the recorder directory
-(writable, free space), the telemetry endpoints and the daemon's safety settings. Nothing is
-opened that the running daemon would hold (no serial port, no MAVLink, no Zenoh session).
+(one the installed unit's sandbox lets the service write, writable by its user, free space), the
+telemetry endpoints and the daemon's safety settings. Nothing is opened that the running daemon
+would hold (no serial port, no MAVLink, no Zenoh session).
 """
 
 from __future__ import annotations
 
+import grp
 import os
+import pwd
 import shutil
 import stat
 from dataclasses import dataclass
 from pathlib import Path
 
 from companion.errors import CompanionError, ConfigError, problems_of
+from companion.service_unit import INSTALLED_UNIT, ServiceSandbox, sandbox_of
 
 OK, WARN, FAIL = "ok", "warn", "FAIL"
 
@@ -42,21 +46,89 @@ def _device(path: str) -> tuple[str, str]:
     return OK, shown
 
 
-def _directory(path: Path) -> tuple[str, str]:
+def _nearest_existing(path: Path) -> Path | None:
+    """`path` or its closest existing parent; None when this user cannot look (EACCES)."""
     existing = path
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
+    try:
+        while not existing.exists() and existing != existing.parent:
+            existing = existing.parent
+    except PermissionError:
+        return None
+    return existing
+
+
+def _free(existing: Path) -> tuple[str, str]:
+    free_gb = shutil.disk_usage(existing).free / 1e9
+    return (WARN if free_gb < 1.0 else OK), f"{free_gb:.1f} GB free"
+
+
+def _directory(path: Path) -> tuple[str, str]:
+    """Writable by the user running the check (no installed unit to say who the service is)."""
+    existing = _nearest_existing(path)
+    if existing is None:
+        return WARN, f"{path}: cannot look inside as {_me()}: run the check as root"
     if not os.access(existing, os.W_OK | os.X_OK):
         return FAIL, f"{path}: {existing} is not writable"
-    free_gb = shutil.disk_usage(existing).free / 1e9
     created = "" if path.exists() else " (will be created)"
-    verdict = WARN if free_gb < 1.0 else OK
-    return verdict, f"{path}{created}, {free_gb:.1f} GB free"
+    verdict, free = _free(existing)
+    return verdict, f"{path}{created}, {free}"
 
 
-def run_checks(config_path: str | Path) -> list[CheckItem]:
+def _me() -> str:
+    return pwd.getpwuid(os.geteuid()).pw_name
+
+
+def _writable_by(st: os.stat_result, user: str, groups: tuple[str, ...]) -> bool | None:
+    """Whether `user` (with `groups`) may create files in a directory; None: no such user here."""
+    try:
+        uid = pwd.getpwnam(user).pw_uid
+        gids = {grp.getgrnam(g).gr_gid for g in groups}
+    except KeyError:
+        return None
+    if uid == 0:
+        return True
+    if st.st_uid == uid:
+        return bool(st.st_mode & stat.S_IWUSR)
+    if st.st_gid in gids:
+        return bool(st.st_mode & stat.S_IWGRP)
+    return bool(st.st_mode & stat.S_IWOTH)
+
+
+def _service_directory(path: Path, sandbox: ServiceSandbox) -> tuple[str, str]:
+    """The recorder directory as the installed service will see it: inside the unit's writable
+    directories (ProtectSystem=strict makes the rest read-only) and writable by its User=."""
+    if sandbox.writable is None:  # no read-only file system: the user's permissions decide
+        return _directory(path)
+    root = sandbox.writable_root(path)
+    if root is None:
+        allowed = ", ".join(str(p) for p in sandbox.writable) or "none"
+        return FAIL, (
+            f"{path}: the service cannot write there ({sandbox.source} makes the file system "
+            f"read-only but for: {allowed}); put [recorder] directory under one of them"
+        )
+    existing = _nearest_existing(path)
+    if existing is None:  # e.g. the state directory is 0750 companion: the operator cannot look
+        return OK, f"{path} (inside the service's {root}; cannot look inside as {_me()})"
+    created = "" if path.exists() else " (will be created)"
+    user = sandbox.user or "root"
+    managed = root in sandbox.managed
+    root_path = Path(root)
+    if existing != root_path and root_path not in existing.parents:  # the root is missing
+        if not managed:
+            return FAIL, f"{path}: {root} does not exist (the service cannot start without it)"
+        created = f" (systemd creates {root} for {user} at the first start)"
+    elif (existing != root_path or not managed) and (  # systemd hands a managed root to user
+        _writable_by(existing.stat(), user, sandbox.groups) is False
+    ):
+        return FAIL, f"{path}: {existing} is not writable by the service's user {user}"
+    verdict, free = _free(existing)
+    return verdict, f"{path}{created}, {free}"
+
+
+def run_checks(config_path: str | Path, unit_path: Path | None = INSTALLED_UNIT) -> list[CheckItem]:
     """Every check's result; stops after the config check if the config is unusable (then one
-    FAIL line per problem of the file, all of them)."""
+    FAIL line per problem of the file, all of them). `unit_path`: the service's unit file, whose
+    sandbox decides where the recorder may write (skipped when absent or None)."""
     from companion.config import load_config  # torch is imported with the policy section
     from companion.model_file import load_model
 
@@ -99,7 +171,13 @@ def run_checks(config_path: str | Path) -> list[CheckItem]:
         items.append(CheckItem("autopilot", OK, f"{url} (network link: not contacted here)"))
 
     if config.recorder.enabled:
-        verdict, detail = _directory(config.recorder.directory)
+        directory = Path(config.recorder.directory)
+        if unit_path is not None and unit_path.is_file():
+            verdict, detail = _service_directory(directory, sandbox_of(unit_path))
+        else:
+            verdict, detail = _directory(directory)
+            if unit_path is not None:
+                detail += f" (no {unit_path}: the service's sandbox is not checked)"
         items.append(CheckItem("recorder", verdict, detail))
     else:
         items.append(CheckItem("recorder", WARN, "disabled: no flight log will be written"))

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from typing import IO, Any
 
 from companion.errors import ConfigError
+from companion.service_unit import LAUNCH_TIMEOUT_S  # above the unit's start+stop timeouts
 
 DEFAULT_UNIT = "vision-swarm-companion.service"
 ACTIONS = ("start", "stop", "restart", "status", "is-active")
@@ -112,7 +113,7 @@ async def launch(
     unit: str = DEFAULT_UNIT,
     ssh: str = "ssh",
     port: int | None = None,
-    timeout_s: float = 20.0,
+    timeout_s: float = LAUNCH_TIMEOUT_S,
 ) -> list[LaunchResult]:
     """Run the action on every host in parallel; results in the order of `hosts`."""
     commands = [ssh_command(h, action, user=user, unit=unit, ssh=ssh, port=port) for h in hosts]
