@@ -4,12 +4,15 @@ companion run --config FILE            # the daemon (systemd runs this)
 companion check --config FILE          # config, model hash and metadata, devices: ready to fly?
 companion check --autopilot [--config FILE | --url URL] [--params FILE]
                                        # the live autopilot's parameters against a .params file
+companion params file --sysid N        # the PX4 parameter file for drone N (--drones 1-9 --out DIR)
 companion log summary FILE             # what a flight log (MCAP) holds
 companion log recover FILE OUT         # rewrite a log cut short by a crash as a complete file
 companion ground launch --hosts H ...  # systemctl start|stop|... on the drones over SSH
 companion ground monitor --connect E   # live table of the swarm's Zenoh telemetry
+companion ground logs pull --hosts H ... --dest DIR   # the drones' new flight logs over SSH
+companion engage | disengage | status  # the running daemon's control socket (sudo)
 companion conventions                  # frame conventions and flocking defaults this build uses
-companion --version
+companion --version [--config FILE]    # version, source commit, the model's SHA-256
 
 Exit status: 0 success, 1 a check or a remote command failed, 2 a usage or configuration error
 (one line on stderr).
@@ -21,22 +24,30 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import os
 import signal
 import sys
 from collections.abc import Sequence
 from dataclasses import asdict
 
-from companion import __version__, frames
+from companion import frames
+from companion.control_cli import add_control_parsers, cmd_control
 from companion.errors import CompanionError, ConfigError
 from companion.flocking import FlockingParams
-from companion.service_unit import INSTALLED_UNIT, LAUNCH_TIMEOUT_S
+from companion.ground_cli import add_ground_parser, cmd_ground
+from companion.service_unit import INSTALLED_UNIT
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="companion", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument(
+        "--version",
+        action="store_true",
+        help="print the version, the source commit and the model's SHA-256, then exit "
+        "(companion --version [--config FILE]: that config's model)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("conventions", help="print frame conventions and flocking defaults")
 
@@ -64,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
         "write (default: the installed unit; skipped if absent)",
     )
 
+    from companion.px4_params_file import add_params_parser
+
+    add_params_parser(sub)
     log_parser = sub.add_parser("log", help="flight logs")
     log = log_parser.add_subparsers(dest="log_command", required=True)
     summary = log.add_parser("summary", help="what a flight log (MCAP) holds")
@@ -73,32 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
     recover.add_argument("file", help="the .mcap left by a killed daemon")
     recover.add_argument("out", help="the complete, indexed copy to write (must not exist)")
 
-    ground = sub.add_parser("ground", help="ground station").add_subparsers(
-        dest="ground_command", required=True
-    )
-    launch = ground.add_parser("launch", help="systemctl ACTION the service on drones over SSH")
-    launch.add_argument("--hosts", nargs="+", required=True, help="drone host names or addresses")
-    launch.add_argument("--action", default="start", help="start, stop, restart, status")
-    launch.add_argument("--user", default=None, help="SSH user (default: ssh's)")
-    launch.add_argument("--port", type=int, default=None, help="SSH port")
-    launch.add_argument("--unit", default=None, help="systemd unit name")
-    launch.add_argument("--ssh", default="ssh", help="the ssh program")
-    launch.add_argument(
-        "--timeout",
-        type=float,
-        default=LAUNCH_TIMEOUT_S,
-        help="seconds per host (default: longer than the unit's start + stop timeouts)",
-    )
-    launch.add_argument("--dry-run", action="store_true", help="print the commands only")
-    monitor = ground.add_parser("monitor", help="live table of swarm/** telemetry over Zenoh")
-    monitor.add_argument(
-        "--connect", nargs="+", default=None, help="Zenoh endpoints of the drones (tcp/HOST:PORT)"
-    )
-    monitor.add_argument("--listen", nargs="*", default=[], help="endpoints to listen on")
-    monitor.add_argument("--key", default="swarm/**", help="key expression to subscribe to")
-    monitor.add_argument("--interval", type=float, default=1.0, help="seconds between tables")
-    monitor.add_argument("--duration", type=float, default=None, help="stop after this long")
-    monitor.add_argument("--clear", action="store_true", help="redraw in place (a terminal)")
+    add_ground_parser(sub)
+    add_control_parsers(sub)
     return parser
 
 
@@ -178,35 +168,19 @@ def cmd_log(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_ground(args: argparse.Namespace) -> int:
-    from companion import groundstation as ground
+def cmd_version(argv: Sequence[str]) -> int:
+    from companion.version import version_text
 
-    if args.ground_command == "launch":
-        unit = args.unit or ground.DEFAULT_UNIT
-        options = {"user": args.user, "unit": unit, "ssh": args.ssh, "port": args.port}
-        if args.dry_run:
-            for host in args.hosts:
-                print(" ".join(ground.ssh_command(host, args.action, **options)))
-            return 0
-        results = asyncio.run(
-            ground.launch(args.hosts, args.action, timeout_s=args.timeout, **options)
-        )
-        print(ground.format_launch(results, args.action))
-        return 0 if all(r.ok for r in results) else 1
-    connect = args.connect if args.connect is not None else [ground.DEFAULT_MONITOR_ENDPOINT]
-    with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C ends the monitor
-        ground.run_monitor(
-            connect,
-            listen=args.listen,
-            key=args.key,
-            interval_s=args.interval,
-            duration_s=args.duration,
-            clear=args.clear,
-        )
+    parser = argparse.ArgumentParser(prog="companion --version")
+    parser.add_argument("--config", help="the companion TOML file whose model to hash")
+    print(version_text(parser.parse_args(argv).config))
     return 0
 
 
 def run(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--version"]:
+        return cmd_version(argv[1:])
     args = build_parser().parse_args(argv)
     if args.command == "conventions":
         print(conventions_text())
@@ -217,15 +191,43 @@ def run(argv: Sequence[str] | None = None) -> int:
         return cmd_check(args)
     if args.command == "log":
         return cmd_log(args)
+    if args.command in ("engage", "disengage", "status"):
+        return cmd_control(args)
+    if args.command == "params":
+        from companion.px4_params_file import cmd_params
+
+        return cmd_params(args)
     return cmd_ground(args)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     try:
-        return run(argv)
+        code = run(argv)
     except CompanionError as exc:
         print(f"companion: error: {exc}", file=sys.stderr)
-        return 2
+        code = 2
+    pass  # _exit_now_if_a_model_hangs(code)
+    return code
+
+
+def _exit_now_if_a_model_hangs(code: int) -> None:
+    """End the process with `code` at once if an abandoned model call still runs.
+
+    The interpreter's normal exit would abort under it (SIGABRT, "terminate called without an
+    active exception"; see `companion.model_thread`): everything is closed by now, so flush the
+    logs and stdio and skip the interpreter's clean-up.
+    """
+    thread_module = sys.modules.get("companion.model_thread")  # loaded only with a policy
+    if thread_module is None or not thread_module.abandoned_inferences():
+        return
+    logging.getLogger("companion").warning(
+        "a hung model call is still running: ending the process without the interpreter's clean-up"
+    )
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

@@ -35,7 +35,16 @@ PX4_STOCK: dict[str, tuple[float, int]] = {
     "COM_RCL_EXCEPT": (0, INT32),
     "COM_FAIL_ACT_T": (5.0, REAL32),
     "COM_OBC_LOSS_T": (5.0, REAL32),
-    "COM_RC_OVERRIDE": (1, INT32),
+    "COM_RC_OVERRIDE": (1, INT32),  # bit 0 auto modes only: sticks do not take over OFFBOARD
+    "NAV_RCL_ACT": (2, INT32),  # RC loss: Return
+    "RTL_RETURN_ALT": (30.0, REAL32),  # SITL's airframe (the metadata's default is 60)
+    "RTL_CONE_ANG": (45, INT32),
+    "RTL_DESCEND_ALT": (10.0, REAL32),
+    "RTL_LAND_DELAY": (0.0, REAL32),
+    "COM_LOW_BAT_ACT": (3, INT32),
+    "COM_ARM_WO_GPS": (1, INT32),
+    "EKF2_REQ_NSATS": (6, INT32),
+    "EKF2_REQ_EPH": (3.0, REAL32),
     "MPC_XY_VEL_MAX": (12.0, REAL32),
     "MPC_XY_CRUISE": (5.0, REAL32),
     "MPC_VEL_MANUAL": (10.0, REAL32),

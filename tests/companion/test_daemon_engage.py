@@ -13,7 +13,11 @@ far above the emulator's 20 ms loop; every other wait is a liveness bound.
 from __future__ import annotations
 
 import asyncio
+import os
 import shutil
+import stat
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -202,6 +206,147 @@ def test_a_restarted_daemon_does_not_take_back_px4s_offboard(
             assert len(reassert) == 1 and reassert[0].params[1:3] == (4.0, 3.0)  # AUTO LOITER
             assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
             await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "engaged")
+        finally:
+            daemon.request_stop("test over")
+            await asyncio.wait_for(run, 15.0)
+
+    try:
+        asyncio.run(body())
+    finally:
+        px4.stop()
+
+
+def test_ground_mode_engages_only_on_companion_engage(
+    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+) -> None:
+    px4 = make_px4()
+    model = make_policy_file("constant", BODY_CMD_FLU)
+    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="ground")
+
+    async def body() -> None:
+        run = asyncio.create_task(daemon.run())
+        try:
+            await until(lambda: daemon.ready, GUARD_S, "a healthy pipeline")
+            await asyncio.sleep(1.0)
+            assert not px4.setpoints() and px4.mode is Px4Mode.POSCTL
+            assert "companion engage" in daemon.health.reason
+            assert stat.S_IMODE(os.stat(socket_path).st_mode) == 0o660  # root + service user
+            # The operator's command line, as the ground station runs it over SSH.
+            argv = [sys.executable, "-m", "companion.cli", "engage", "--socket", socket_path]
+            done = await asyncio.to_thread(subprocess.run, argv, capture_output=True, text=True)
+            assert done.returncode == 0, done.stderr
+            assert "engage requested" in done.stdout
+            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+            assert px4.mode is Px4Mode.OFFBOARD
+
+            assert (await control(socket_path, "disengage"))["ok"]
+            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
+            await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
+            await asyncio.sleep(1.0)  # the engagement ended with the disengage: no new one
+            assert px4.mode is Px4Mode.HOLD and daemon.health.state is HealthState.STARTING
+            assert (await control(socket_path, "engage"))["ok"]
+            await until(lambda: px4.mode is Px4Mode.OFFBOARD, GUARD_S, "OFFBOARD again")
+        finally:
+            daemon.request_stop("test over")
+            await asyncio.wait_for(run, 15.0)
+
+    try:
+        asyncio.run(body())
+    finally:
+        px4.stop()
+
+
+def test_no_engagement_during_a_px4_failsafe(
+    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+) -> None:
+    """A geofence breach or low battery: PX4 says CRITICAL, the daemon waits it out."""
+    px4 = make_px4()
+    px4.set_failsafe(True)
+    model = make_policy_file("constant", BODY_CMD_FLU)
+    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="auto")
+
+    async def body() -> None:
+        run = asyncio.create_task(daemon.run())
+        try:
+            await until(lambda: "failsafe" in daemon.health.reason, GUARD_S, "the failsafe seen")
+            await asyncio.sleep(1.5)
+            assert not px4.setpoints() and not set_modes(px4) and px4.mode is Px4Mode.POSCTL
+            assert daemon.health.state is HealthState.STARTING
+            px4.set_failsafe(False)
+            await until(lambda: px4.mode is Px4Mode.OFFBOARD, GUARD_S, "engaged after it")
+        finally:
+            daemon.request_stop("test over")
+            await asyncio.wait_for(run, 15.0)
+
+    try:
+        asyncio.run(body())
+    finally:
+        px4.stop()
+
+
+def test_a_lost_heartbeat_hovers_then_fails_safe(
+    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+) -> None:
+    """Telemetry flows but no HEARTBEAT: the mode is unknown, so the daemon stops flying."""
+    px4 = make_px4()
+    model = make_policy_file("constant", BODY_CMD_FLU)
+    daemon = make_daemon(
+        tmp_path, cameras, px4, model, socket_path, engage="auto", failsafe_after_s=1.0
+    )
+
+    async def body() -> None:
+        run = asyncio.create_task(daemon.run())
+        try:
+            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+            seen = len(daemon.health.history)
+            lost_s = time.monotonic()
+            px4.set_heartbeat_alive(False)
+            await until(lambda: daemon.health.state is HealthState.FAILSAFE, GUARD_S, "FAILSAFE")
+            after = list(daemon.health.history)[seen:]
+            hover = next(t for t in after if t.target is HealthState.HOVER)
+            assert "heartbeat lost" in hover.reason
+            # heartbeat_timeout_s (3 s) after the last heartbeat (at most 1 s before the cut)
+            assert 2.0 - 0.1 <= hover.t_s - lost_s <= 3.0 + 1.0
+            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
+        finally:
+            daemon.request_stop("test over")
+            await asyncio.wait_for(run, 15.0)
+
+    try:
+        asyncio.run(body())
+    finally:
+        px4.stop()
+
+
+def test_a_pilot_switch_is_seen_before_the_next_heartbeat(
+    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+) -> None:
+    """PX4's CURRENT_MODE arrives within ~0.1 s of the switch; the heartbeat up to 1 s later."""
+    px4 = make_px4()
+    model = make_policy_file("constant", BODY_CMD_FLU)
+    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="auto")
+
+    async def body() -> None:
+        run = asyncio.create_task(daemon.run())
+        try:
+            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+            autopilot = daemon._commander.autopilot if daemon._commander else None
+            assert autopilot is not None
+
+            def heartbeat_s() -> float:
+                status = autopilot.telemetry().status
+                return -1.0 if status is None else status.t_s
+
+            last = heartbeat_s()
+            await until(lambda: heartbeat_s() != last, GUARD_S, "a heartbeat")
+            seen = len(daemon.health.history)
+            switched_s = time.monotonic()  # just after a heartbeat: the next is ~1 s away
+            assert px4.pilot_switch_mode(Px4Mode.POSCTL).name == "ACCEPTED"
+            await until(lambda: daemon.health.state is HealthState.PILOT, GUARD_S, "PILOT")
+            pilot = next(
+                t for t in list(daemon.health.history)[seen:] if t.target is HealthState.PILOT
+            )
+            assert pilot.t_s - switched_s < 0.6
         finally:
             daemon.request_stop("test over")
             await asyncio.wait_for(run, 15.0)

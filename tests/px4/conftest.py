@@ -17,9 +17,10 @@ import itertools
 import signal
 import subprocess
 import threading
+import time
 import tomllib
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +55,7 @@ class Vehicle:
     px4: RunningPx4
     gcs: GroundStation
     loaded: dict[str, tuple[float, float, float | None]]  # name -> (file, echoed, read back)
+    load_texts: list[str] = field(default_factory=list)  # STATUSTEXT from loading to take-off
 
     @property
     def url(self) -> str:
@@ -100,6 +102,7 @@ def vehicles(sitl: Px4Sitl) -> Iterator[dict[int, Vehicle]]:
     try:
         for gcs in stations.values():
             gcs.wait_ready(40.0)
+        load_started = time.monotonic()
         loaded = load_params(stations[SHIPPED], read_params_file(SHIPPED_PARAMS))
         errors: list[BaseException] = []
 
@@ -116,8 +119,9 @@ def vehicles(sitl: Px4Sitl) -> Iterator[dict[int, Vehicle]]:
             thread.join()
         if errors:
             raise errors[0]
+        load_texts = stations[SHIPPED].texts_since(load_started)
         yield {
-            SHIPPED: Vehicle(sitl.instances[SHIPPED], stations[SHIPPED], loaded),
+            SHIPPED: Vehicle(sitl.instances[SHIPPED], stations[SHIPPED], loaded, load_texts),
             STOCK: Vehicle(sitl.instances[STOCK], stations[STOCK], {}),
         }
     finally:
@@ -140,6 +144,22 @@ def stock(vehicles: dict[int, Vehicle]) -> Vehicle:
 @pytest.fixture(scope="session")
 def policy_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A TorchScript policy that always answers POLICY_BODY_FLU (body FLU, m/s)."""
+    return constant_policy(tmp_path_factory.mktemp("policy") / "constant.pt", POLICY_BODY_FLU)
+
+
+@pytest.fixture(scope="session")
+def make_policy(tmp_path_factory: pytest.TempPathFactory) -> Callable[[tuple[float, ...]], Path]:
+    """`make_policy(velocity_body_flu)` -> a constant TorchScript policy file answering it."""
+
+    def make(velocity_body_flu: tuple[float, ...]) -> Path:
+        folder = tmp_path_factory.mktemp("policy")
+        return constant_policy(folder / "constant.pt", velocity_body_flu)
+
+    return make
+
+
+def constant_policy(path: Path, velocity_body_flu: tuple[float, ...]) -> Path:
+    """Save a TorchScript policy that always answers `velocity_body_flu` (m/s) at `path`."""
     import torch
     from torch import Tensor, nn
 
@@ -148,12 +168,11 @@ def policy_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     class Constant(nn.Module):
         def __init__(self) -> None:
             super().__init__()
-            self.register_buffer("value", torch.tensor(POLICY_BODY_FLU, dtype=torch.float32))
+            self.register_buffer("value", torch.tensor(velocity_body_flu, dtype=torch.float32))
 
         def forward(self, images: Tensor) -> Tensor:
             return self.value.expand(images.shape[0], 3).clone()
 
-    path = tmp_path_factory.mktemp("policy") / "constant.pt"
     with torchscript_calls():
         module = torch.jit.script(Constant().eval())
     save_model(module, base_metadata(), path)
@@ -231,11 +250,13 @@ class DaemonRun:
 
 @pytest.fixture
 def daemon_run(sitl: Px4Sitl, tmp_path: Path, policy_file: Path) -> Iterator[Any]:
-    """`daemon_run(vehicle, **daemon_overrides)` -> a started DaemonRun (stopped afterwards)."""
+    """`daemon_run(vehicle, policy=None, **daemon_overrides)` -> a started DaemonRun (stopped
+    afterwards); `policy`: a TorchScript file (default: the constant POLICY_BODY_FLU one)."""
     runs: list[DaemonRun] = []
 
-    def make(vehicle: Vehicle, **daemon: Any) -> DaemonRun:
-        run = DaemonRun(sitl, vehicle, tmp_path / f"run{len(runs)}", policy_file, **daemon)
+    def make(vehicle: Vehicle, policy: Path | None = None, **daemon: Any) -> DaemonRun:
+        folder = tmp_path / f"run{len(runs)}"
+        run = DaemonRun(sitl, vehicle, folder, policy or policy_file, **daemon)
         runs.append(run)
         return run.start()
 
