@@ -13,6 +13,12 @@ disk when the kernel writes them back; `fsync=True` forces that at every flush (
 Rotation: a new file after `max_file_mb` or `max_file_s`, named
 `{file_prefix}_{session start, UTC}_{index:03d}.mcap`; every file carries the schemas, channels and
 a `flight` metadata record, so each opens on its own. Format and topics: `companion.flight_log`.
+
+Housekeeping (`companion.log_budget`): the file being written is held under an exclusive
+`flock`, so other processes (the ground station's `logs pull`) can tell it from closed files;
+with `max_total_mb` set, opening a file first deletes the oldest closed `*.mcap` files of the
+folder until they plus one full file (`max_file_mb`) fit, and records each deletion as a
+`log deleted` health event (warning) in the new file.
 """
 
 from __future__ import annotations
@@ -47,6 +53,7 @@ from companion.flight_log import (
     format_summary,
     summarize_log,
 )
+from companion.log_budget import lock_for_writing, make_room
 from companion.sections import require_bool, section_from_dict
 from companion.validation import require_int_range, require_range
 
@@ -83,6 +90,7 @@ class RecorderConfig:
     fsync: bool = False  # also fsync at every flush (survives power loss; costs SD-card time)
     queue_size: int = 256  # messages waiting for the writer; beyond: dropped and counted
     file_prefix: str = "flight"
+    max_total_mb: float | None = None  # all *.mcap in `directory`; None: no budget
 
     def __post_init__(self) -> None:
         s = SECTION
@@ -96,6 +104,13 @@ class RecorderConfig:
         require_range(f"{s}.flush_every_s", self.flush_every_s, 0.01, 60.0)
         require_bool(f"{s}.fsync", self.fsync)
         require_int_range(f"{s}.queue_size", self.queue_size, 1, 100_000)
+        if self.max_total_mb is not None:
+            require_range(f"{s}.max_total_mb", self.max_total_mb, 0.0, 1e9, low_inclusive=False)
+            if self.max_total_mb < self.max_file_mb:
+                raise ConfigError(
+                    f"{s}.max_total_mb: {self.max_total_mb:g} is below {s}.max_file_mb "
+                    f"({self.max_file_mb:g}); allowed range [max_file_mb, 1e9] MB"
+                )
         if not isinstance(self.file_prefix, str) or not _PREFIX_RE.match(self.file_prefix):
             raise ConfigError(
                 f"{s}.file_prefix: {self.file_prefix!r} must be 1-64 of A-Z a-z 0-9 _ . -"
@@ -307,8 +322,10 @@ class FlightRecorder:
         return self.config.directory / f"{prefix}_{self._session}_{index:03d}.mcap"
 
     def _open_file(self, index: int) -> None:
+        events = make_room(self.config.directory, self.config.max_total_mb, self.config.max_file_mb)
         path = self._path(index)
         stream = open(path, "xb")  # noqa: SIM115 - closed in _close_file
+        lock_for_writing(stream)
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile="", library="vision-swarm companion")
         self._channel_ids = {}
@@ -322,6 +339,15 @@ class FlightRecorder:
             **self._metadata,
         }
         writer.add_metadata("flight", info)
+        for event in events:
+            stamp_ns = self._clock_ns()
+            writer.add_message(
+                self._channel_ids[TOPIC_HEALTH],
+                log_time=stamp_ns,
+                data=jsonable.dumps(event),
+                publish_time=stamp_ns,
+                sequence=next(self._sequences[TOPIC_HEALTH]),
+            )
         stream.flush()
         self._stream, self._writer = stream, writer
         self._files.append(path)
