@@ -26,8 +26,7 @@ import asyncio
 import logging
 import math
 import time
-from collections.abc import AsyncIterator, Callable, Coroutine
-from dataclasses import replace
+from collections.abc import Callable, Coroutine
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -41,19 +40,16 @@ from numpy.typing import ArrayLike, NDArray
 
 from companion import autopilot_mavlink as mav
 from companion.autopilot_direct import DirectLink
+from companion.autopilot_feed import TelemetryFeed
 from companion.autopilot_types import (
     Autopilot,
     AutopilotConfig,
     AutopilotTelemetry,
-    BatteryState,
     FlightMode,
-    GpsFixType,
-    GpsState,
     OffboardState,
     Stamped,
 )
 from companion.errors import AutopilotError, OffboardLostError
-from companion.geo import GlobalPosition, HomePosition
 
 __all__ = [
     "Autopilot",
@@ -105,8 +101,7 @@ class MavsdkAutopilot:
         self._telemetry_task: asyncio.Task[None] | None = None
         self._direct: DirectLink | None = None
         self._in_flight: set[asyncio.Future[Any]] = set()
-        self._telemetry = AutopilotTelemetry()
-        self._health_ok = False
+        self._feed = TelemetryFeed(clock, on_mode=self._mode_seen)
         self._offboard_state = OffboardState.INACTIVE
         self._lost_reason: str | None = None
         self._closed = False
@@ -126,7 +121,7 @@ class MavsdkAutopilot:
     # -- state -------------------------------------------------------------------------------
 
     def telemetry(self) -> AutopilotTelemetry:
-        return self._telemetry
+        return self._feed.value
 
     @property
     def offboard_state(self) -> OffboardState:
@@ -162,9 +157,11 @@ class MavsdkAutopilot:
             target = await self._call("system id", system.get_system_id())
             self._direct = DirectLink(system, own_system_id=1, target_system=int(target))
             self._telemetry_task = asyncio.create_task(
-                self._run_telemetry(), name="autopilot-telemetry"
+                self._feed.run(self._telemetry_api, self._direct), name="autopilot-telemetry"
             )
-            await self._wait_until(lambda: self._health_ok, cfg.health_timeout_s, "health checks")
+            await self._wait_until(
+                lambda: self._feed.health_ok, cfg.health_timeout_s, "health checks"
+            )
             logger.info("autopilot on %s: connected and healthy", cfg.url)
             if cfg.arm:
                 await self.arm()
@@ -178,9 +175,9 @@ class MavsdkAutopilot:
         await self._call("arm", self._require(self._action).arm())
 
     async def takeoff(self) -> None:
-        has_landed_state = lambda: self._telemetry.in_air is not None  # noqa: E731
+        has_landed_state = lambda: self._feed.value.in_air is not None  # noqa: E731
         await self._wait_until(has_landed_state, self.config.health_timeout_s, "landed state")
-        in_air = self._telemetry.in_air
+        in_air = self._feed.value.in_air
         if in_air is not None and in_air.value:
             logger.info("takeoff skipped: already in the air")
             return
@@ -189,7 +186,7 @@ class MavsdkAutopilot:
 
         def climbed() -> bool:
             nonlocal seen_takeoff
-            mode, flying = self._telemetry.flight_mode, self._telemetry.in_air
+            mode, flying = self._feed.value.flight_mode, self._feed.value.in_air
             if mode is not None and mode.value is FlightMode.TAKEOFF:
                 seen_takeoff = True
                 return False
@@ -211,7 +208,7 @@ class MavsdkAutopilot:
         await self._call("offboard start", offboard.start())
 
         def in_offboard() -> bool:
-            mode = self._telemetry.flight_mode
+            mode = self._feed.value.flight_mode
             return (
                 mode is not None and mode.value is FlightMode.OFFBOARD and mode.t_s >= t_request_s
             )
@@ -226,7 +223,7 @@ class MavsdkAutopilot:
     async def prepare_offboard(self) -> None:
         if self._offboard_state in (OffboardState.ACTIVE, OffboardState.READY):
             return
-        report = self._telemetry.mode_report
+        report = self._feed.value.mode_report
         if report is not None and report.value.resumes_offboard:
             current = report.value
             logger.warning(
@@ -249,7 +246,7 @@ class MavsdkAutopilot:
         self._lost_reason = None
 
     def _resumes_offboard(self) -> bool:
-        report = self._telemetry.mode_report
+        report = self._feed.value.mode_report
         return report is not None and report.value.resumes_offboard
 
     async def stream_velocity_ned(self, vel_ned_mps: ArrayLike, yaw_ned_rad: float) -> None:
@@ -332,7 +329,7 @@ class MavsdkAutopilot:
         return plugin
 
     def _current_yaw_ned_rad(self) -> float:
-        q = self._telemetry.q_ned_frd_wxyz
+        q = self._feed.value.q_ned_frd_wxyz
         if q is None or not np.all(np.isfinite(q.value)):
             return 0.0
         w, x, y, z = (float(c) for c in q.value)
@@ -411,64 +408,6 @@ class MavsdkAutopilot:
             direct.destroy()
         mavsdk.destroy()
 
-    async def _run_telemetry(self) -> None:
-        api = self._telemetry_api
-        try:
-            async with asyncio.TaskGroup() as group:
-                group.create_task(
-                    self._consume(api.subscribe_position_velocity_ned(), self._on_pos_vel)
-                )
-                group.create_task(
-                    self._consume(api.subscribe_attitude_quaternion(), self._on_attitude)
-                )
-                group.create_task(self._consume(api.subscribe_flight_mode(), self._on_flight_mode))
-                group.create_task(self._consume(api.subscribe_armed(), self._on_armed))
-                group.create_task(self._consume(api.subscribe_in_air(), self._on_in_air))
-                group.create_task(self._consume(api.subscribe_health(), self._on_health))
-                group.create_task(self._consume(api.subscribe_home(), self._on_home))
-                group.create_task(self._consume(api.subscribe_battery(), self._on_battery))
-                group.create_task(self._consume(api.subscribe_gps_info(), self._on_gps_info))
-                if self._direct is not None:
-                    group.create_task(self._direct.run(self._on_status, self._on_mode_report))
-        except* Exception as group_error:  # logged: the daemon sees stale telemetry stamps
-            logger.error("autopilot telemetry stopped: %s", group_error.exceptions)
-
-    async def _consume(
-        self, stream: AsyncIterator[Any], handler: Callable[[Any, float], None]
-    ) -> None:
-        async for item in stream:
-            handler(item, self._clock())
-
-    def _on_pos_vel(self, item: Any, t_s: float) -> None:
-        pos, vel = item.position, item.velocity
-        self._telemetry = replace(
-            self._telemetry,
-            position_ned_m=Stamped(_vector(pos.north_m, pos.east_m, pos.down_m), t_s),
-            velocity_ned_mps=Stamped(_vector(vel.north_m_s, vel.east_m_s, vel.down_m_s), t_s),
-        )
-
-    def _on_attitude(self, q: Any, t_s: float) -> None:
-        self._telemetry = replace(
-            self._telemetry, q_ned_frd_wxyz=Stamped(_vector(q.w, q.x, q.y, q.z), t_s)
-        )
-
-    def _on_flight_mode(self, raw: Any, t_s: float) -> None:
-        mode = FlightMode.__members__.get(getattr(raw, "name", ""), FlightMode.UNKNOWN)
-        self._telemetry = replace(self._telemetry, flight_mode=Stamped(mode, t_s))
-        self._mode_seen(mode, "heartbeat")
-
-    def _on_status(self, status: mav.VehicleStatus) -> None:
-        self._telemetry = replace(self._telemetry, status=Stamped(status, self._clock()))
-
-    def _on_mode_report(self, report: mav.ModeReport) -> None:
-        t_s = self._clock()
-        self._telemetry = replace(
-            self._telemetry,
-            mode_report=Stamped(report, t_s),
-            flight_mode=Stamped(report.mode, t_s),
-        )
-        self._mode_seen(report.mode, "CURRENT_MODE")
-
     def _mode_seen(self, mode: FlightMode, source: str) -> None:
         """The vehicle's mode, from a heartbeat or CURRENT_MODE: engaged, or taken over."""
         if self._offboard_state is OffboardState.READY and mode is FlightMode.OFFBOARD:
@@ -478,41 +417,6 @@ class MavsdkAutopilot:
             self._offboard_state = OffboardState.LOST
             self._lost_reason = f"vehicle switched to {mode.name} (pilot or PX4 failsafe)"
             logger.warning("offboard lost (seen in %s): %s", source, self._lost_reason)
-
-    def _on_armed(self, armed: Any, t_s: float) -> None:
-        self._telemetry = replace(self._telemetry, armed=Stamped(bool(armed), t_s))
-
-    def _on_in_air(self, in_air: Any, t_s: float) -> None:
-        self._telemetry = replace(self._telemetry, in_air=Stamped(bool(in_air), t_s))
-
-    def _on_home(self, home: Any, t_s: float) -> None:
-        position = GlobalPosition(
-            float(home.latitude_deg), float(home.longitude_deg), float(home.absolute_altitude_m)
-        )
-        if not all(math.isfinite(v) for v in vars(position).values()):
-            return  # no global home yet
-        local = (home.local_north_m, home.local_east_m, home.local_down_m)
-        local_ned = tuple(float(c) if math.isfinite(float(c)) else 0.0 for c in local)
-        value = HomePosition(position, (local_ned[0], local_ned[1], local_ned[2]))
-        self._telemetry = replace(self._telemetry, home=Stamped(value, t_s))
-
-    def _on_battery(self, battery: Any, t_s: float) -> None:
-        # MAVSDK 4 reports remaining_percent in 0..100 (not 0..1); NaN when PX4 does not know.
-        remaining, voltage = float(battery.remaining_percent), float(battery.voltage_v)
-        value = BatteryState(
-            remaining_pct=remaining if math.isfinite(remaining) else None,
-            voltage_v=voltage if math.isfinite(voltage) else None,
-        )
-        self._telemetry = replace(self._telemetry, battery=Stamped(value, t_s))
-
-    def _on_gps_info(self, info: Any, t_s: float) -> None:
-        name = getattr(info.fix_type, "name", "")
-        fix = GpsFixType.__members__.get(name, GpsFixType.NO_GPS)
-        value = GpsState(fix_type=fix, satellites=int(info.num_satellites))
-        self._telemetry = replace(self._telemetry, gps=Stamped(value, t_s))
-
-    def _on_health(self, health: Any, t_s: float) -> None:
-        self._health_ok = bool(health.is_local_position_ok and health.is_home_position_ok)
 
 
 if TYPE_CHECKING:  # mypy checks that the adapter satisfies the contract

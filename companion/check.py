@@ -200,13 +200,21 @@ def run_checks(config_path: str | Path, unit_path: Path | None = INSTALLED_UNIT)
     items.append(
         CheckItem(
             "daemon",
-            OK if d.engage == "auto" else WARN,
+            OK if d.engage in ("operator", "ground") else WARN,
             f"{d.rate_hz:g} Hz, hover after {d.stale_hover_after_s:g} s stale, "
             f"{config.autopilot.failsafe_action} after {d.failsafe_after_s:g} s of hover, "
-            f"engage {d.engage}" + (" (never commands the vehicle)" if d.engage == "never" else ""),
+            f"engage {d.engage}" + ENGAGE_NOTES.get(d.engage, ""),
         )
     )
     return items
+
+
+ENGAGE_NOTES = {
+    "operator": " (the pilot's switch to OFFBOARD engages)",
+    "ground": " (companion engage engages)",
+    "auto": " (engages with no operator action: for simulation only)",
+    "never": " (never commands the vehicle)",
+}
 
 
 def format_report(items: list[CheckItem]) -> str:

@@ -154,6 +154,7 @@ class Daemon:
             events=self.outputs.event,
         )
         self._control_channel: ControlChannel | None = None
+        self._engage_waiting = ""
         if d.control_socket:
             self._control_channel = ControlChannel(d.control_socket, self._on_control)
         self.ticks = 0
@@ -369,6 +370,10 @@ class Daemon:
             if await commander.disengage(self._law.hover(yaw_enu, "disengage")):
                 self.outputs.event("disengaged", "info", "operator: vehicle switched to HOLD")
         gate = self.engagement.gate(telemetry, now_s, commander.may_engage(now_s))
+        if gate.waiting != self._engage_waiting and self.health.state is HealthState.STARTING:
+            self._engage_waiting = gate.waiting  # the log says why the drone did not engage
+            if gate.waiting and "OFFBOARD request" not in gate.waiting:
+                self.outputs.event("not engaging", "info", gate.waiting)
         decision = self.health.step(
             HealthInputs(
                 now_s=now_s,

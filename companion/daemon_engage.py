@@ -67,10 +67,9 @@ class Engagement:
         status = telemetry.status
         if status is None:
             return "no heartbeat from the autopilot yet"
-        age_s = now_s - status.t_s
-        if age_s > self._heartbeat_timeout_s:
+        if now_s - status.t_s > self._heartbeat_timeout_s:
             return (
-                f"autopilot heartbeat lost ({age_s:.1f} s > {self._heartbeat_timeout_s:g} s): "
+                f"autopilot heartbeat lost (none for > {self._heartbeat_timeout_s:g} s): "
                 "flight mode unknown"
             )
         return ""
