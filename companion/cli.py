@@ -206,7 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CompanionError as exc:
         print(f"companion: error: {exc}", file=sys.stderr)
         code = 2
-    pass  # _exit_now_if_a_model_hangs(code)
+    _exit_now_if_a_model_hangs(code)
     return code
 
 

@@ -6,7 +6,9 @@ A policy is two files side by side:
   `companion.camera.layout` order, and returning the body-frame (FLU) velocity, float32 (B, 3) m/s.
   Standardization is inside. The metadata is embedded as the extra file `metadata.json`, so the
   `.pt` alone is self-describing and loads with torch only (`torch.jit.load`).
-- `NAME.json`: `{"sha256": <hex digest of NAME.pt>, "metadata": {...}}`, the recorded hash.
+- `NAME.json`: `{"sha256": <hex digest of NAME.pt>, "metadata": {...}, "reference": {...}}`, the
+  recorded hash and, since the platform check, a reference input and output
+  (`companion.model_reference`; older sidecars have none).
 
 `load_model` refuses a file whose hash differs from the expected one (from the config) or from the
 recorded one, and metadata that does not describe this project's rig and frames.
@@ -28,6 +30,7 @@ import torch
 
 from companion.camera.layout import FACE_NAMES, IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX
 from companion.errors import ModelError
+from companion.model_reference import SIDECAR_KEY, Reference, reference_from_json
 
 MODEL_FORMAT = "vision-swarm-policy/1"
 METADATA_NAME = "metadata.json"
@@ -92,8 +95,14 @@ def check_metadata(metadata: dict[str, Any]) -> None:
                 )
 
 
-def save_model(module: torch.jit.ScriptModule, metadata: dict[str, Any], path: str | Path) -> str:
-    """Write `module` with `metadata` embedded, then the sidecar with its hash; returns the hash."""
+def save_model(
+    module: torch.jit.ScriptModule,
+    metadata: dict[str, Any],
+    path: str | Path,
+    reference: Reference | None = None,
+) -> str:
+    """Write `module` with `metadata` embedded, then the sidecar with its hash (and `reference`,
+    the platform check's input and output, when given); returns the hash."""
     check_metadata(metadata)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -101,7 +110,9 @@ def save_model(module: torch.jit.ScriptModule, metadata: dict[str, Any], path: s
     with torchscript_calls():
         torch.jit.save(module, str(path), _extra_files={METADATA_NAME: text})
     digest = sha256_file(path)
-    sidecar = {"sha256": digest, "metadata": metadata}
+    sidecar: dict[str, Any] = {"sha256": digest, "metadata": metadata}
+    if reference is not None:
+        sidecar[SIDECAR_KEY] = reference.to_json()
     sidecar_path(path).write_text(json.dumps(sidecar, indent=2, sort_keys=True) + "\n")
     return digest
 
@@ -136,6 +147,7 @@ class LoadedModel:
     metadata: dict[str, Any]
     sha256: str
     path: Path
+    reference: Reference | None = None  # from the sidecar; None: exported before the check
 
 
 def load_model(
@@ -144,7 +156,8 @@ def load_model(
     """Load and verify a policy file.
 
     The hash is computed over the exact bytes that are then deserialized. It must equal
-    `expected_sha256` when given, and the sidecar's recorded hash when the sidecar exists.
+    `expected_sha256` when given, and the sidecar's recorded hash when the sidecar exists. The
+    sidecar's reference (if any) is parsed here; a malformed one is refused.
     """
     path = Path(path)
     try:
@@ -157,9 +170,11 @@ def load_model(
             f"model file {path} has SHA-256 {digest}, but {expected_sha256} was expected: refused"
         )
     sidecar = sidecar_path(path)
+    reference = None
     if sidecar.exists():
         try:
-            recorded = json.loads(sidecar.read_text())["sha256"]
+            record = json.loads(sidecar.read_text())
+            recorded = record["sha256"]
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ModelError(f"cannot read the recorded hash in {sidecar}: {exc}") from exc
         if digest != recorded:
@@ -167,6 +182,8 @@ def load_model(
                 f"model file {path} has SHA-256 {digest}, but {sidecar.name} records {recorded}: "
                 "refused"
             )
+        if SIDECAR_KEY in record:
+            reference = reference_from_json(record[SIDECAR_KEY], sidecar.name)
     elif expected_sha256 is None:
         raise ModelError(f"model file {path} has no recorded hash ({sidecar.name} is missing)")
     extra = {METADATA_NAME: ""}
@@ -184,4 +201,6 @@ def load_model(
     if not isinstance(metadata, dict):
         raise ModelError(f"model file {path}: {METADATA_NAME} is not an object")
     check_metadata(metadata)
-    return LoadedModel(module=module, metadata=metadata, sha256=digest, path=path)
+    return LoadedModel(
+        module=module, metadata=metadata, sha256=digest, path=path, reference=reference
+    )

@@ -3,15 +3,21 @@
 `Policy.load(config)` loads the policy file with `companion.model_file.load_model` (the SHA-256 from
 the config must match, and the sidecar's; the metadata must describe this rig: 64x384 uint8 input
 in `layout.FACE_NAMES` order, body-FLU velocity output), sets torch's intra-op threads, turns on
-oneDNN Graph fusion (`graph_fusion`, see `companion.model_file.enable_graph_fusion`) and warms the
-model up; `fused` then says whether the graph runs as fused oneDNN partitions.
+oneDNN Graph fusion (`graph_fusion`, see `companion.model_file.enable_graph_fusion`), warms the
+model up and runs the platform check: the warmed-up policy on the reference image recorded at
+export (`companion.model_reference`) must give the recorded output within its tolerance. A model
+that fails at warm-up or gives a wrong reference output is refused (`ModelError`, one line); one
+whose sidecar has no reference (exported before the check) loads with a warning. `fused` then says
+whether the graph runs as fused oneDNN partitions.
 
 `await policy.infer(image)` runs the model in a dedicated single-thread executor, so the event loop
 keeps ticking while it runs (TorchScript releases the GIL). It never raises for what the model
 does: an exception, a wrong shape, a NaN/inf or a speed above `max_speed_mps` gives
 `PolicyOutput(ok=False, reason=...)` with a zero velocity. At most one inference is in flight: a
 call made while the previous one still runs returns `ok=False` ("busy") at once instead of
-queueing, and `in_flight_since` (monotonic seconds) lets the daemon notice a hung model.
+queueing, and `in_flight_since` (monotonic seconds) lets the daemon notice a hung model. A call
+still running at `close` is abandoned (`companion.model_thread`: the process must then end with
+`os._exit`, as `companion.cli.main` does).
 
 `infer_batch(images)` is the synchronous batched path for the simulation.
 """
@@ -20,7 +26,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import queue
 import re
 import threading
 import time
@@ -35,7 +40,7 @@ import torch
 from numpy.typing import NDArray
 
 from companion.camera.layout import IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX
-from companion.errors import ConfigError
+from companion.errors import ConfigError, ModelError
 from companion.model_file import (
     LoadedModel,
     check_metadata,
@@ -43,6 +48,7 @@ from companion.model_file import (
     graph_is_fused,
     load_model,
 )
+from companion.model_thread import ModelThread
 from companion.sections import section_from_dict
 from companion.validation import require_int_range, require_range
 
@@ -51,6 +57,8 @@ log = logging.getLogger(__name__)
 SECTION = "policy"
 IMAGE_SHAPE = (IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX)
 _SHA256_RE = re.compile(r"^[0-9a-fA-F]{64}$")
+REFERENCE_RUNS = 3  # oneDNN Graph compiles its fused partitions in the first 2 calls of a graph
+_ERROR_LINE_RE = re.compile(r"^[A-Za-z_][\w.]*(Error|Exception)\b.*")
 
 FloatArray = NDArray[np.float64]
 
@@ -125,61 +133,27 @@ def check_output(vel: NDArray[Any], max_speed_mps: float) -> str:
     return ""
 
 
+def error_line(exc: BaseException) -> str:
+    """The one line of an exception that says what went wrong (not torch's traceback).
+
+    TorchScript errors start with "The following operation failed in the TorchScript
+    interpreter." and a TorchScript traceback, then the original error ("RuntimeError: mat1 and
+    mat2 shapes cannot be multiplied ..."); other torch errors start with it and may go on with a
+    C++ stack.
+    """
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    if not lines:
+        return type(exc).__name__
+    if lines[0].startswith("The following operation failed"):
+        found = [line for line in lines[1:] if _ERROR_LINE_RE.match(line)]
+        return found[-1] if found else lines[-1]
+    return f"{type(exc).__name__}: {lines[0]}"
+
+
 def _image_error(image: NDArray[Any]) -> str:
     if image.dtype != np.uint8 or image.shape != IMAGE_SHAPE:
         return f"input must be uint8 {IMAGE_SHAPE}, got {image.dtype} {image.shape}"
     return ""
-
-
-class _ModelThread:
-    """One daemon thread that runs submitted calls in order; at most `capacity` waiting.
-
-    A daemon thread (not a ThreadPoolExecutor, whose threads are joined at interpreter exit) so
-    that a hung model cannot keep the process from exiting.
-    """
-
-    def __init__(self, name: str, capacity: int = 1) -> None:
-        self._jobs: queue.Queue[tuple[Callable[[], Any], Future[Any]] | None] = queue.Queue(
-            maxsize=capacity
-        )
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while True:
-            job = self._jobs.get()
-            if job is None:
-                return
-            fn, future = job
-            if not future.set_running_or_notify_cancel():
-                continue
-            try:
-                future.set_result(fn())
-            except BaseException as exc:  # handed to the caller through the future
-                future.set_exception(exc)
-
-    def submit(self, fn: Callable[[], Any]) -> Future[Any]:
-        """Queue `fn`; raises RuntimeError when closed or full."""
-        if self._closed:
-            raise RuntimeError("the model thread is closed")
-        future: Future[Any] = Future()
-        try:
-            self._jobs.put_nowait((fn, future))
-        except queue.Full:
-            raise RuntimeError("the model thread is busy") from None
-        return future
-
-    def close(self, timeout_s: float) -> bool:
-        """Stop after the running call; True if the thread ended within `timeout_s`."""
-        if not self._closed:
-            self._closed = True
-            try:
-                self._jobs.put(None, timeout=timeout_s)
-            except queue.Full:
-                return False
-        self._thread.join(timeout_s)
-        return not self._thread.is_alive()
 
 
 class Policy:
@@ -199,15 +173,19 @@ class Policy:
         self.loaded = loaded
         self.config = config
         self._clock = clock
-        self._thread = _ModelThread("policy")
+        self._thread = ModelThread("policy")
         self._lock = threading.Lock()
         self._in_flight_since: float | None = None
         self.warmup_latency_s: float | None = None
         self.fused = False  # whether the warmed-up graph runs as fused oneDNN partitions
+        self.reference_error_mps: float | None = None  # the platform check's; None: no reference
 
     @classmethod
     def load(cls, config: PolicyConfig, *, clock: Callable[[], float] = time.monotonic) -> Policy:
-        """Load and verify the file (raises `ModelError`), set threads, warm up (blocking)."""
+        """Load and verify the file, set threads, warm up, check the reference output (blocking).
+
+        Raises `ModelError` (one line) for a file, metadata, warm-up or reference output refused.
+        """
         loaded = load_model(config.model_path, expected_sha256=config.sha256)
         torch.set_num_threads(config.threads)
         fusion = enable_graph_fusion(config.graph_fusion)
@@ -216,15 +194,17 @@ class Policy:
         policy = cls(loaded, config, clock=clock)
         try:
             policy.warm_up()
+            policy.check_reference()
         except BaseException:
             policy.close()
             raise
         log.info(
-            "policy %s loaded (sha256 %s), warm-up %.1f ms, %s",
+            "policy %s loaded (sha256 %s), warm-up %.1f ms, %s, %s",
             loaded.path,
             loaded.sha256[:12],
             1e3 * (policy.warmup_latency_s or 0.0),
             "fused (oneDNN Graph)" if policy.fused else "unfused",
+            policy.reference_text,
         )
         return policy
 
@@ -241,8 +221,58 @@ class Policy:
         """Monotonic time the running inference started, or None when idle."""
         return self._in_flight_since
 
+    @property
+    def reference_text(self) -> str:
+        """The platform check's result in words, for logs."""
+        reference, error = self.loaded.reference, self.reference_error_mps
+        if reference is None or error is None:
+            return "no reference output to check (exported before the platform check)"
+        return f"reference output within {error:.2g} m/s (tolerance {reference.tolerance_mps:g})"
+
+    def check_reference(self) -> float | None:
+        """Run the policy on its reference image as it flies (batch 1 through `_worker`, on the
+        worker thread, `REFERENCE_RUNS` times); the largest error in m/s, None without a reference.
+
+        Raises `ModelError` when an output differs from the recorded one by more than the
+        reference's tolerance: this platform does not compute the policy that was exported.
+        """
+        reference, path = self.loaded.reference, self.loaded.path
+        if reference is None:
+            log.warning(
+                "policy %s: its sidecar has no reference output (exported before the platform "
+                "check): loaded without checking that this platform computes it right; re-export "
+                "it or add one with sim_harness.learning.export.add_reference",
+                path,
+            )
+            return None
+
+        def run() -> list[NDArray[Any]]:
+            return [self._worker(reference.image_u8) for _ in range(REFERENCE_RUNS)]
+
+        try:
+            outputs = self._thread.submit(run).result()
+        except Exception as exc:
+            raise ModelError(
+                f"model {path} failed on its reference input: {error_line(exc)}: refused"
+            ) from exc
+        error = max(reference.error_mps(out) for out in outputs)
+        if not error <= reference.tolerance_mps:
+            got = np.array2string(np.asarray(outputs[-1]).reshape(-1), precision=4)
+            expected = np.array2string(np.array(reference.output_body_flu_mps), precision=4)
+            raise ModelError(
+                f"model {path} gives {got} m/s on its reference input, {expected} recorded at "
+                f"export: max error {error:.3g} m/s exceeds the tolerance "
+                f"{reference.tolerance_mps:g} m/s (this platform computes the policy wrongly): "
+                "refused"
+            )
+        self.reference_error_mps = error
+        return error
+
     def warm_up(self) -> None:
-        """Run `warmup_runs` inferences on a grey image on the worker thread (blocking)."""
+        """Run `warmup_runs` inferences on a grey image on the worker thread (blocking).
+
+        Raises `ModelError` with the model's error in one line if a call fails.
+        """
         if self.config.warmup_runs == 0:
             return
         grey = torch.full((1, *IMAGE_SHAPE), 128, dtype=torch.uint8)
@@ -253,7 +283,11 @@ class Policy:
                 self._run_model(grey)
             return (self._clock() - start) / self.config.warmup_runs, graph_is_fused()
 
-        self.warmup_latency_s, self.fused = self._thread.submit(run).result()
+        try:
+            self.warmup_latency_s, self.fused = self._thread.submit(run).result()
+        except Exception as exc:
+            path = self.loaded.path
+            raise ModelError(f"model {path} failed at warm-up: {error_line(exc)}: refused") from exc
 
     def _run_model(self, batch_u8: torch.Tensor) -> torch.Tensor:
         """The model call: (B, 64, 384) uint8 -> (B, 3) float; runs on the worker thread."""

@@ -13,6 +13,11 @@ first calls; the metadata's `runtime` section says so for other loaders.
 into MKL-DNN constants that `torch.jit.load` cannot read back ("required keyword attribute 'value'
 is undefined"), and it measured slower than the oneDNN Graph fuser (docs/BENCHMARKS.md).
 
+The sidecar also records a reference input and output (`companion.model_reference`): the
+exported graph's output on `reference_scene()`, computed here, which the drone's loader reproduces
+before it flies (a platform that computes the policy wrongly is refused). `add_reference` adds one
+to a policy exported before that check.
+
 Grad-CAM needs the eager network, which a frozen graph no longer is, so the export also writes
 `NAME.weights.pt` (state dict + model config, read with `weights_only=True`); its SHA-256 is in
 the policy's metadata, so it is verified through the policy file's own hash.
@@ -24,6 +29,7 @@ import contextlib
 import copy
 import hashlib
 import json
+import platform
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,11 +41,13 @@ from companion.errors import CompanionError, ModelError
 from companion.frames import BODY_FRAME, WORLD_FRAME
 from companion.model_file import (
     base_metadata,
+    enable_graph_fusion,
     load_model,
     save_model,
     sidecar_path,
     torchscript_calls,
 )
+from companion.model_reference import SIDECAR_KEY, Reference, reference_scene
 from sim_harness.learning.checkpoint import load_checkpoint, model_from_checkpoint
 from sim_harness.learning.evaluate import PolicyModule
 from sim_harness.learning.inference_graph import InferenceDroNet
@@ -64,6 +72,7 @@ class ExportResult:
     weights_path: Path
     max_abs_diff_mps: float
     metadata: dict[str, Any]
+    reference: Reference
 
 
 def to_torchscript(model: DroNet, graph: str = "inference") -> torch.jit.ScriptModule:
@@ -183,8 +192,53 @@ def export_policy(
         "sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),
     }
     metadata["export_check"] = {"images": int(check_images_u8.shape[0]), "max_abs_diff_mps": diff}
-    digest = save_model(scripted, metadata, path)
-    return ExportResult(path, digest, weights, diff, metadata)
+    reference = make_reference(scripted, "computed by export_policy from the exported graph")
+    digest = save_model(scripted, metadata, path, reference)
+    return ExportResult(path, digest, weights, diff, metadata, reference)
+
+
+def make_reference(
+    module: torch.jit.ScriptModule, how: str, image_u8: torch.Tensor | None = None
+) -> Reference:
+    """The platform check's reference: `module`'s output on `image_u8` (64, 384) uint8 (default
+    `reference_scene()`), batch 1, unfused, computed on this machine."""
+    image = torch.from_numpy(reference_scene()) if image_u8 is None else image_u8
+    fusion_was = bool(torch.jit.onednn_fusion_enabled())  # type: ignore[no-untyped-call]
+    enable_graph_fusion(False)
+    try:
+        with torch.inference_mode():
+            out = module(image.unsqueeze(0)).to(torch.float64).reshape(-1)
+    finally:
+        enable_graph_fusion(fusion_was)
+    if out.shape != (3,) or not bool(torch.isfinite(out).all()):
+        raise ModelError(f"the policy's output on the reference image is {out.tolist()}: refused")
+    made_with = {
+        "how": how,
+        "image": "companion.model_reference.reference_scene()" if image_u8 is None else "given",
+        "torch": torch.__version__,
+        "machine": platform.machine(),
+        "graph_fusion": False,
+        "batch": 1,
+    }
+    x, y, z = (float(v) for v in out)
+    return Reference(image.numpy().copy(), (x, y, z), made_with=made_with)
+
+
+def add_reference(path: Path, how: str = "add_reference on a trusted machine") -> Reference:
+    """Add the platform check's reference to the sidecar of a policy exported before it.
+
+    The policy is verified first (`load_model`: hash, metadata); its sidecar keeps every other
+    field, so its hash record is unchanged. Run it on a machine known to compute the policy
+    right (the export machine): the drone refuses the policy if it computes something else.
+    """
+    path = Path(path)
+    loaded = load_model(path)
+    reference = make_reference(loaded.module, how)
+    sidecar = sidecar_path(path)
+    record = json.loads(sidecar.read_text())
+    record[SIDECAR_KEY] = reference.to_json()
+    sidecar.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
+    return reference
 
 
 def training_chain(command: str, init_from: str | None, depth: int = 0) -> dict[str, Any]:

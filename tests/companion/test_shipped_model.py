@@ -123,6 +123,24 @@ def test_the_shipped_model_gives_its_recorded_outputs(graph_fusion: bool) -> Non
     assert np.ptp(values, axis=0).max() > 100 * TOLERANCE_MPS
 
 
+@pytest.mark.parametrize("graph_fusion", [False, True], ids=["unfused", "fused"])
+def test_the_shipped_model_passes_its_platform_check(graph_fusion: bool) -> None:
+    """The sidecar's reference (added by `sim_harness.learning.export.add_reference`, recorded in
+    its `made_with`) is reproduced here far inside its 1e-3 m/s tolerance, fused and unfused."""
+    fusion_was = bool(torch.jit.onednn_fusion_enabled())  # type: ignore[no-untyped-call]
+    threads = torch.get_num_threads()
+    try:
+        with Policy.load(PolicyConfig(model_path=MODEL, graph_fusion=graph_fusion)) as policy:
+            reference = policy.loaded.reference
+            assert reference is not None and reference.tolerance_mps == 1e-3
+            assert policy.reference_error_mps is not None
+            # measured: 3e-8 m/s unfused, 1.5e-7 m/s fused
+            assert policy.reference_error_mps < TOLERANCE_MPS
+    finally:
+        enable_graph_fusion(fusion_was)
+        torch.set_num_threads(threads)
+
+
 def regenerate() -> dict[str, Any]:
     """Write the golden file from the unfused model (the fused one is checked against it)."""
     doc = {

@@ -17,6 +17,7 @@ from companion.policy import Policy, PolicyConfig
 from sim_harness.cli import main
 from sim_harness.dataset.store import open_dataset
 from sim_harness.learning.export import (
+    add_reference,
     export_policy,
     load_eager_model,
     training_chain,
@@ -180,6 +181,44 @@ def test_a_file_that_does_not_match_its_hash_is_refused(exported, tmp_path) -> N
     with pytest.raises(ModelError, match="refused"):
         load_eager_model(tampered)
     assert main(["evaluate", "--model", str(tampered), "--dataset", "unused"]) == 2
+
+
+@pytest.mark.parametrize("fusion", [True, False])
+def test_the_export_records_a_reference_the_drone_loader_reproduces(exported, fusion) -> None:
+    _, result, _ = exported
+    recorded = load_model(result.path).reference
+    assert recorded is not None and recorded.made_with is not None
+    assert recorded.output_body_flu_mps == result.reference.output_body_flu_mps
+    assert recorded.made_with["torch"] == torch.__version__
+    np.testing.assert_array_equal(recorded.image_u8, result.reference.image_u8)
+    fusion_before = torch.jit.onednn_fusion_enabled()
+    try:
+        with Policy.load(PolicyConfig(model_path=result.path, graph_fusion=fusion)) as policy:
+            assert policy.reference_error_mps is not None
+            assert policy.reference_error_mps < 1e-5
+    finally:
+        enable_graph_fusion(fusion_before)
+
+
+def test_add_reference_to_a_policy_exported_before_the_check(exported, tmp_path) -> None:
+    _, result, _ = exported
+    for suffix in (".pt", ".json", ".weights.pt"):
+        source = result.path.with_name(result.path.stem + suffix)
+        (tmp_path / f"policy{suffix}").write_bytes(source.read_bytes())
+    old = tmp_path / "policy.pt"
+    record = json.loads(sidecar_path(old).read_text())
+    del record["reference"]  # as an export made before the platform check wrote it
+    sidecar_path(old).write_text(json.dumps(record))
+    assert load_model(old).reference is None
+    added = add_reference(old, "test")
+    again = json.loads(sidecar_path(old).read_text())
+    assert again["sha256"] == record["sha256"] and again["metadata"] == record["metadata"]
+    # Recomputed from the file, maybe with another thread count: float32 sums reordered.
+    np.testing.assert_allclose(
+        added.output_body_flu_mps, result.reference.output_body_flu_mps, atol=1e-5, rtol=0
+    )
+    with Policy.load(PolicyConfig(model_path=old, graph_fusion=False)) as policy:
+        assert policy.reference_error_mps is not None and policy.reference_error_mps < 1e-5
 
 
 def test_tampered_eager_weights_are_refused(exported, tmp_path) -> None:
