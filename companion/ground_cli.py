@@ -3,6 +3,7 @@
 companion ground launch --hosts H ... [--action start|stop|restart|status|is-active]
 companion ground monitor --connect tcp/HOST:PORT ...
 companion ground logs pull --hosts H ... --dest DIR
+companion ground engage | disengage | status --hosts H ...   # the daemons' control sockets
 """
 
 from __future__ import annotations
@@ -62,6 +63,23 @@ def add_ground_parser(sub: Any) -> None:
     )
     monitor.add_argument("--clear", action="store_true", help="redraw in place (a terminal)")
 
+    from companion.ground_engage import COMPANION_BIN, CONTROL_ACTIONS, DEFAULT_TIMEOUT_S
+
+    helps = {
+        "engage": 'engage OFFBOARD on drones whose [daemon] engage = "ground"',
+        "disengage": "stop commanding: zero velocity, then Hold",
+        "status": "each daemon's health state and why",
+    }
+    for action in CONTROL_ACTIONS:
+        control = ground.add_parser(action, help=helps[action] + " (over SSH)")
+        _add_ssh_arguments(control)
+        control.add_argument(
+            "--companion", default=COMPANION_BIN, help="the drone's companion program"
+        )
+        control.add_argument(
+            "--timeout", type=float, default=DEFAULT_TIMEOUT_S, help="seconds per host"
+        )
+
     logs = ground.add_parser("logs", help="flight logs on the drones").add_subparsers(
         dest="logs_command", required=True
     )
@@ -106,6 +124,16 @@ def cmd_ground(args: argparse.Namespace) -> int:
         )
         print(ground.format_launch(results, args.action))
         return 0 if all(r.ok for r in results) else 1
+    if args.ground_command in ("engage", "disengage", "status"):
+        from companion.ground_engage import control_all, format_control
+
+        action = args.ground_command
+        require_range(f"ground {action} --timeout", args.timeout, 0.0, 3600.0, low_inclusive=False)
+        answers = asyncio.run(
+            control_all(_targets(args), action, companion=args.companion, timeout_s=args.timeout)
+        )
+        print(format_control(answers, action))
+        return 0 if all(r.ok for r in answers) else 1
     if args.ground_command == "logs":
         from companion import ground_logs
 

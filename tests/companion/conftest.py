@@ -14,7 +14,7 @@ Every policy takes the stitched images, uint8 (B, 64, 384), and returns a body-F
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -101,3 +101,83 @@ def make_policy_file(tmp_path: Path) -> PolicyFactory:
         return path
 
     return make
+
+
+class EngageRig:
+    """One drone's hardware around a daemon under test: six pty cameras playing textured frames
+    and the pymavlink PX4 emulator, hovering at 5 m in POSCTL with 1 Hz heartbeats like PX4."""
+
+    def __init__(self, folder: Path, model: Path, px4: dict[str, Any]) -> None:
+        import numpy as np
+
+        from sim_harness.hil.autopilot_emulator import (
+            AutopilotEmulator,
+            EmulatorConfig,
+            free_udp_port,
+        )
+        from sim_harness.hil.camera_emulator import CameraEmulator
+        from sim_harness.hil.px4_logic import Px4LogicConfig
+
+        frames = np.random.default_rng(7).integers(20, 230, (10, 64, 384), dtype=np.uint8)
+        frames[:, :, ::8] = 255
+        self.folder, self.model = folder, model
+        self.cameras = CameraEmulator(folder / "dev", source=frames, rate_hz=10.0).start()
+        config = EmulatorConfig.hovering(
+            free_udp_port(), 5.0, heartbeat_rate_hz=1.0, px4=Px4LogicConfig(**px4)
+        )
+        self.px4 = AutopilotEmulator(config).start()
+
+    def daemon(self, control_socket: str, **daemon: Any) -> Any:
+        """A `Daemon` wired to this rig (telemetry off; the test's clock)."""
+        import time
+
+        from companion.config import config_from_dict
+        from companion.daemon import Daemon
+
+        document = {
+            "drone": {"id": "d1"},
+            "cameras": {"faces": self.cameras.faces_config()},
+            "policy": {"model_path": str(self.model)},
+            "autopilot": {
+                "url": f"udpin://127.0.0.1:{self.px4.config.client_port}",
+                "discovery_timeout_s": 5.0,
+                "health_timeout_s": 5.0,
+                "offboard_prestream_s": 0.05,
+            },
+            "recorder": {"directory": str(self.folder / "flights")},
+            "telemetry": {"enabled": False},
+            "daemon": {"failsafe_after_s": 5.0, "control_socket": control_socket, **daemon},
+        }
+        return Daemon(config_from_dict(document), handle_signals=False, clock=time.monotonic)
+
+    def close(self) -> None:
+        self.px4.stop()
+        self.cameras.close()
+
+
+@pytest.fixture
+def engage_rig(
+    tmp_path: Path, make_policy_file: PolicyFactory
+) -> Iterator[Callable[..., EngageRig]]:
+    """`engage_rig(**px4_logic) -> EngageRig` flying the constant policy (forward 1 m/s)."""
+    rigs: list[EngageRig] = []
+
+    def make(**px4: Any) -> EngageRig:
+        model = make_policy_file("constant", (1.0, 0.0, 0.0))
+        rigs.append(EngageRig(tmp_path / f"rig{len(rigs)}", model, px4))
+        return rigs[-1]
+
+    yield make
+    for rig in rigs:
+        rig.close()
+
+
+@pytest.fixture
+def control_socket_path() -> Iterator[str]:
+    """A control socket path short enough for a unix socket (pytest's tmp_path may not be)."""
+    import shutil
+    import tempfile
+
+    folder = tempfile.mkdtemp(prefix="ctl", dir="/tmp")
+    yield f"{folder}/control.sock"
+    shutil.rmtree(folder, ignore_errors=True)

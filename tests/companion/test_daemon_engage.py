@@ -14,85 +14,25 @@ from __future__ import annotations
 
 import asyncio
 import os
-import shutil
 import stat
 import subprocess
 import sys
-import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from companion.config import config_from_dict
 from companion.control_channel import send_command
-from companion.daemon import Daemon
 from companion.health import HealthState
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
-from sim_harness.hil.camera_emulator import CameraEmulator
-from sim_harness.hil.px4_logic import Px4LogicConfig, Px4Mode
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
+from sim_harness.hil.px4_logic import Px4Mode
 
 DO_SET_MODE = 176
 GUARD_S = 20.0
 BODY_CMD_FLU = (1.0, 0.0, 0.0)
-
-
-def recording(n: int = 10) -> np.ndarray:
-    frames = np.random.default_rng(7).integers(20, 230, (n, 64, 384), dtype=np.uint8)
-    frames[:, :, ::8] = 255
-    return frames
-
-
-@pytest.fixture
-def cameras(tmp_path: Path) -> Iterator[CameraEmulator]:
-    with CameraEmulator(tmp_path / "dev", source=recording(), rate_hz=10.0) as emulator:
-        yield emulator
-
-
-@pytest.fixture
-def socket_path() -> Iterator[str]:
-    """A control socket path short enough for a unix socket (pytest's tmp_path may not be)."""
-    folder = tempfile.mkdtemp(prefix="ctl", dir="/tmp")
-    yield f"{folder}/control.sock"
-    shutil.rmtree(folder, ignore_errors=True)
-
-
-def make_px4(**px4: Any) -> AutopilotEmulator:
-    """PX4 hovering at 5 m in POSCTL, heartbeats at 1 Hz like PX4 (CURRENT_MODE on change)."""
-    config = EmulatorConfig.hovering(
-        free_udp_port(), 5.0, heartbeat_rate_hz=1.0, px4=Px4LogicConfig(**px4)
-    )
-    return AutopilotEmulator(config).start()
-
-
-def make_daemon(
-    tmp_path: Path,
-    cameras: CameraEmulator,
-    px4: AutopilotEmulator,
-    model: Path,
-    socket_path: str,
-    **daemon: Any,
-) -> Daemon:
-    document = {
-        "drone": {"id": "d1"},
-        "cameras": {"faces": cameras.faces_config()},
-        "policy": {"model_path": str(model)},
-        "autopilot": {
-            "url": f"udpin://127.0.0.1:{px4.config.client_port}",
-            "discovery_timeout_s": 5.0,
-            "health_timeout_s": 5.0,
-            "offboard_prestream_s": 0.05,
-        },
-        "recorder": {"directory": str(tmp_path / "flights")},
-        "telemetry": {"enabled": False},
-        "daemon": {"failsafe_after_s": 5.0, "control_socket": socket_path, **daemon},
-    }
-    config = config_from_dict(document)
-    return Daemon(config, handle_signals=False, clock=time.monotonic)
 
 
 async def until(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
@@ -113,11 +53,11 @@ def set_modes(px4: AutopilotEmulator, since: int = 0) -> list[Any]:
 
 
 def test_operator_mode_streams_and_only_the_pilots_switch_engages(
-    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+    engage_rig: Any, control_socket_path: str
 ) -> None:
-    px4 = make_px4()
-    model = make_policy_file("constant", BODY_CMD_FLU)
-    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="operator")
+    rig = engage_rig()
+    px4 = rig.px4
+    daemon = rig.daemon(control_socket_path, engage="operator")
 
     async def body() -> None:
         run = asyncio.create_task(daemon.run())
@@ -130,14 +70,14 @@ def test_operator_mode_streams_and_only_the_pilots_switch_engages(
             )
             assert daemon.health.state is HealthState.STARTING
             assert "ready" in daemon.health.reason
-            refused = await control(socket_path, "engage")
+            refused = await control(control_socket_path, "engage")
             assert not refused["ok"] and "switching the vehicle to OFFBOARD" in refused["message"]
 
             # The pilot switches to OFFBOARD: engaged, the policy flies.
             assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
             await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
             await until(lambda: px4.setpoints()[-1].vx_mps > 0.5, GUARD_S, "flying north")
-            status = await control(socket_path, "status")
+            status = await control(control_socket_path, "status")
             assert status["state"] == "active" and status["offboard"] == "active"
 
             # The pilot takes over; the daemon stops, then streams again; the pilot re-engages.
@@ -151,7 +91,7 @@ def test_operator_mode_streams_and_only_the_pilots_switch_engages(
             await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "re-engaged")
 
             # The ground station's `companion disengage`: zero velocity, then Hold.
-            reply = await control(socket_path, "disengage")
+            reply = await control(control_socket_path, "disengage")
             assert reply["ok"]
             await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
             await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
@@ -159,19 +99,17 @@ def test_operator_mode_streams_and_only_the_pilots_switch_engages(
             daemon.request_stop("test over")
             await asyncio.wait_for(run, 15.0)
 
-    try:
-        asyncio.run(body())
-    finally:
-        px4.stop()
-    assert not Path(socket_path).exists()  # removed on exit
+    asyncio.run(body())
+    assert not Path(control_socket_path).exists()  # removed on exit
 
 
 def test_a_restarted_daemon_does_not_take_back_px4s_offboard(
-    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+    engage_rig: Any, control_socket_path: str
 ) -> None:
     """PX4 left OFFBOARD by its offboard-loss failsafe (the companion died) and would go back to
     OFFBOARD on the first setpoint: the new daemon re-asserts PX4's mode before streaming."""
-    px4 = make_px4(offboard_loss_mode=Px4Mode.HOLD)
+    rig = engage_rig(offboard_loss_mode=Px4Mode.HOLD)
+    px4 = rig.px4
     # The crashed companion: setpoints, the pilot's switch, then silence.
     old = mavutil.mavlink_connection(f"udpout:127.0.0.1:{px4.local_port}", source_system=1)
     deadline = time.monotonic() + GUARD_S
@@ -188,8 +126,7 @@ def test_a_restarted_daemon_does_not_take_back_px4s_offboard(
         time.sleep(0.05)
     assert px4.mode is Px4Mode.HOLD  # PX4's failsafe, OFFBOARD still intended
 
-    model = make_policy_file("constant", BODY_CMD_FLU)
-    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="operator")
+    daemon = rig.daemon(control_socket_path, engage="operator")
     changes = len(px4.mode_changes())
     streamed = len(px4.setpoints())
 
@@ -210,18 +147,15 @@ def test_a_restarted_daemon_does_not_take_back_px4s_offboard(
             daemon.request_stop("test over")
             await asyncio.wait_for(run, 15.0)
 
-    try:
-        asyncio.run(body())
-    finally:
-        px4.stop()
+    asyncio.run(body())
 
 
 def test_ground_mode_engages_only_on_companion_engage(
-    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+    engage_rig: Any, control_socket_path: str
 ) -> None:
-    px4 = make_px4()
-    model = make_policy_file("constant", BODY_CMD_FLU)
-    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="ground")
+    rig = engage_rig()
+    px4 = rig.px4
+    daemon = rig.daemon(control_socket_path, engage="ground")
 
     async def body() -> None:
         run = asyncio.create_task(daemon.run())
@@ -230,40 +164,44 @@ def test_ground_mode_engages_only_on_companion_engage(
             await asyncio.sleep(1.0)
             assert not px4.setpoints() and px4.mode is Px4Mode.POSCTL
             assert "companion engage" in daemon.health.reason
-            assert stat.S_IMODE(os.stat(socket_path).st_mode) == 0o660  # root + service user
+            assert (
+                stat.S_IMODE(os.stat(control_socket_path).st_mode) == 0o660
+            )  # root + service user
             # The operator's command line, as the ground station runs it over SSH.
-            argv = [sys.executable, "-m", "companion.cli", "engage", "--socket", socket_path]
+            argv = [
+                sys.executable,
+                "-m",
+                "companion.cli",
+                "engage",
+                "--socket",
+                control_socket_path,
+            ]
             done = await asyncio.to_thread(subprocess.run, argv, capture_output=True, text=True)
             assert done.returncode == 0, done.stderr
             assert "engage requested" in done.stdout
             await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
             assert px4.mode is Px4Mode.OFFBOARD
 
-            assert (await control(socket_path, "disengage"))["ok"]
+            assert (await control(control_socket_path, "disengage"))["ok"]
             await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
             await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
             await asyncio.sleep(1.0)  # the engagement ended with the disengage: no new one
             assert px4.mode is Px4Mode.HOLD and daemon.health.state is HealthState.STARTING
-            assert (await control(socket_path, "engage"))["ok"]
+            assert (await control(control_socket_path, "engage"))["ok"]
             await until(lambda: px4.mode is Px4Mode.OFFBOARD, GUARD_S, "OFFBOARD again")
         finally:
             daemon.request_stop("test over")
             await asyncio.wait_for(run, 15.0)
 
-    try:
-        asyncio.run(body())
-    finally:
-        px4.stop()
+    asyncio.run(body())
 
 
-def test_no_engagement_during_a_px4_failsafe(
-    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
-) -> None:
+def test_no_engagement_during_a_px4_failsafe(engage_rig: Any, control_socket_path: str) -> None:
     """A geofence breach or low battery: PX4 says CRITICAL, the daemon waits it out."""
-    px4 = make_px4()
+    rig = engage_rig()
+    px4 = rig.px4
     px4.set_failsafe(True)
-    model = make_policy_file("constant", BODY_CMD_FLU)
-    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="auto")
+    daemon = rig.daemon(control_socket_path, engage="auto")
 
     async def body() -> None:
         run = asyncio.create_task(daemon.run())
@@ -278,21 +216,14 @@ def test_no_engagement_during_a_px4_failsafe(
             daemon.request_stop("test over")
             await asyncio.wait_for(run, 15.0)
 
-    try:
-        asyncio.run(body())
-    finally:
-        px4.stop()
+    asyncio.run(body())
 
 
-def test_a_lost_heartbeat_hovers_then_fails_safe(
-    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
-) -> None:
+def test_a_lost_heartbeat_hovers_then_fails_safe(engage_rig: Any, control_socket_path: str) -> None:
     """Telemetry flows but no HEARTBEAT: the mode is unknown, so the daemon stops flying."""
-    px4 = make_px4()
-    model = make_policy_file("constant", BODY_CMD_FLU)
-    daemon = make_daemon(
-        tmp_path, cameras, px4, model, socket_path, engage="auto", failsafe_after_s=1.0
-    )
+    rig = engage_rig()
+    px4 = rig.px4
+    daemon = rig.daemon(control_socket_path, engage="auto", failsafe_after_s=1.0)
 
     async def body() -> None:
         run = asyncio.create_task(daemon.run())
@@ -312,19 +243,16 @@ def test_a_lost_heartbeat_hovers_then_fails_safe(
             daemon.request_stop("test over")
             await asyncio.wait_for(run, 15.0)
 
-    try:
-        asyncio.run(body())
-    finally:
-        px4.stop()
+    asyncio.run(body())
 
 
 def test_a_pilot_switch_is_seen_before_the_next_heartbeat(
-    tmp_path: Path, cameras: CameraEmulator, socket_path: str, make_policy_file: Any
+    engage_rig: Any, control_socket_path: str
 ) -> None:
     """PX4's CURRENT_MODE arrives within ~0.1 s of the switch; the heartbeat up to 1 s later."""
-    px4 = make_px4()
-    model = make_policy_file("constant", BODY_CMD_FLU)
-    daemon = make_daemon(tmp_path, cameras, px4, model, socket_path, engage="auto")
+    rig = engage_rig()
+    px4 = rig.px4
+    daemon = rig.daemon(control_socket_path, engage="auto")
 
     async def body() -> None:
         run = asyncio.create_task(daemon.run())
@@ -351,7 +279,4 @@ def test_a_pilot_switch_is_seen_before_the_next_heartbeat(
             daemon.request_stop("test over")
             await asyncio.wait_for(run, 15.0)
 
-    try:
-        asyncio.run(body())
-    finally:
-        px4.stop()
+    asyncio.run(body())
