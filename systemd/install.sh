@@ -118,6 +118,9 @@ if [[ $FILES_ONLY == 0 ]]; then
     trap 'rm -rf "$src"' EXIT
     tar -C "$REPO" --exclude=__pycache__ -cf - pyproject.toml README.md companion sim_harness |
         tar -C "$src" -xf -
+    # The installed package says which commit it was built from (`companion --version`).
+    (cd "$src" && "$PYTHON" -m companion.version --record --repo "$REPO") ||
+        echo "  (not a git checkout: companion --version will say commit unknown)"
     run "$PYTHON" -m venv "$VENV"
     if [[ -n $WHEELHOUSE ]]; then
         run "$VENV/bin/pip" install --no-index --find-links "$WHEELHOUSE" "$src"
@@ -159,6 +162,11 @@ if [[ -n $OPERATOR ]]; then
     rule="$OPERATOR ALL=(root) NOPASSWD:"
     for action in start stop restart status is-active; do
         rule+=" /usr/bin/systemctl $action $UNIT,"
+    done
+    # A failed launch shows the unit's last lines; the control socket's commands (engagement).
+    rule+=" /usr/bin/journalctl -u $UNIT -n 20 --no-pager -o cat,"
+    for action in engage disengage status; do
+        rule+=" $PREFIX/venv/bin/companion $action,"
     done
     sudoers=$(mktemp)
     echo "${rule%,}" >"$sudoers"
