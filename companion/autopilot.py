@@ -223,6 +223,16 @@ class MavsdkAutopilot:
     async def prepare_offboard(self) -> None:
         if self._offboard_state in (OffboardState.ACTIVE, OffboardState.READY):
             return
+        mode = self._feed.value.flight_mode
+        if mode is not None and mode.value is FlightMode.OFFBOARD:
+            # Not commanded by this daemon, so following stale setpoints (MAVSDK's re-sends after
+            # a link drop, on which PX4 resumed OFFBOARD): stop them and hold; an operator
+            # engages again.
+            logger.warning("the vehicle is in OFFBOARD without this daemon commanding: HOLD")
+            await self._call("offboard stop (Hold)", self._require(self._offboard).stop())
+            raise AutopilotError(
+                "the vehicle was in OFFBOARD on stale setpoints: switched to HOLD; engage again"
+            )
         report = self._feed.value.mode_report
         if report is not None and report.value.resumes_offboard:
             current = report.value

@@ -280,3 +280,73 @@ def test_a_pilot_switch_is_seen_before_the_next_heartbeat(
             await asyncio.wait_for(run, 15.0)
 
     asyncio.run(body())
+
+
+def test_a_link_drop_longer_than_the_failsafe_ends_in_hold_until_the_pilot_engages(
+    engage_rig: Any, control_socket_path: str
+) -> None:
+    """The radio link drops while flying: PX4's offboard-loss failsafe holds, the daemon hovers
+    and runs its own failsafe once the link is back (PX4 may have resumed OFFBOARD on MAVSDK's
+    re-sent setpoint meanwhile). It ends in Hold, streaming, until the pilot switches again."""
+    rig = engage_rig(offboard_loss_mode=Px4Mode.HOLD)
+    px4 = rig.px4
+    daemon = rig.daemon(control_socket_path, engage="operator", failsafe_after_s=1.0)
+
+    async def body() -> None:
+        run = asyncio.create_task(daemon.run())
+        try:
+            await until(lambda: len(px4.setpoints()) >= 10, GUARD_S, "a setpoint stream")
+            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+            px4.set_link_alive(False)
+            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "PX4's loss failsafe")
+            await until(lambda: daemon.health.state is HealthState.FAILSAFE, GUARD_S, "FAILSAFE")
+            await asyncio.sleep(1.0)
+            px4.set_link_alive(True)
+            await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
+            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
+            changes = len(px4.mode_changes())
+            await asyncio.sleep(3.0)  # the daemon streams again: PX4 must stay in HOLD
+            assert not px4.mode_changes()[changes:]
+            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "re-engaged")
+        finally:
+            daemon.request_stop("test over")
+            await asyncio.wait_for(run, 15.0)
+
+    asyncio.run(body())
+
+
+def test_a_vehicle_in_offboard_on_stale_setpoints_is_put_in_hold_not_adopted(
+    engage_rig: Any,
+) -> None:
+    """PX4 is in OFFBOARD while this daemon is not commanding (it resumed on setpoints MAVSDK
+    re-sent after the daemon had released it): getting ready for the pilot ends that in Hold."""
+    from companion.autopilot import AutopilotConfig, MavsdkAutopilot
+    from companion.errors import AutopilotError
+
+    rig = engage_rig()
+    px4 = rig.px4
+    stale = mavutil.mavlink_connection(f"udpout:127.0.0.1:{px4.local_port}", source_system=1)
+
+    async def body() -> None:
+        config = AutopilotConfig(url=f"udpin://127.0.0.1:{px4.config.client_port}")
+        async with MavsdkAutopilot(config) as autopilot:
+            deadline = time.monotonic() + GUARD_S
+            while autopilot.telemetry().flight_mode is None or (
+                autopilot.telemetry().flight_mode.value.name != "OFFBOARD"
+            ):
+                assert time.monotonic() < deadline, "OFFBOARD never seen"
+                stale.mav.set_position_target_local_ned_send(
+                    0, 1, 1, 1, 0b0000101111000111, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0
+                )
+                px4.pilot_switch_mode(Px4Mode.OFFBOARD)
+                await asyncio.sleep(0.05)
+            with pytest.raises(AutopilotError, match="stale setpoints"):
+                await autopilot.prepare_offboard()
+            assert px4.mode is Px4Mode.HOLD
+
+    try:
+        asyncio.run(body())
+    finally:
+        stale.close()
