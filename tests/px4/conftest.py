@@ -202,7 +202,7 @@ class DaemonRun:
         doc["autopilot"].update(url=vehicle.url, discovery_timeout_s=20.0, health_timeout_s=20.0)
         doc["recorder"]["directory"] = str(folder / "flights")
         doc["telemetry"].update(listen_endpoints=[f"tcp/127.0.0.1:{next(_ports)}"])
-        doc["daemon"].update({"failsafe_after_s": 2.0, **daemon})
+        doc["daemon"].update({"failsafe_after_s": 2.0, "control_socket": "", **daemon})
         self.config_path = folder / "companion.toml"
         self.config_path.write_text(toml_text(doc))
         self.log_path = folder / "daemon.log"
@@ -235,6 +235,16 @@ class DaemonRun:
         logs = sorted((self.folder / "flights").glob("*.mcap"))
         return [
             str(m.json().get("event"))
+            for log in logs
+            for m in LogReader(log).messages()
+            if m.topic == TOPIC_HEALTH
+        ]
+
+    def health_lines(self) -> list[str]:
+        """Each health event as "event: detail" (the detail says why, e.g. why not engaging)."""
+        logs = sorted((self.folder / "flights").glob("*.mcap"))
+        return [
+            f"{m.json().get('event')}: {m.json().get('detail')}"
             for log in logs
             for m in LogReader(log).messages()
             if m.topic == TOPIC_HEALTH

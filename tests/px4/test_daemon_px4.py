@@ -13,7 +13,7 @@ import signal
 import time
 from typing import Any
 
-from sim_harness.hil.px4_gcs import GroundStation
+from sim_harness.hil.px4_gcs import GroundStation, GroundStationError
 from sim_harness.hil.px4_logic import MavResult, Px4Mode
 
 COMMANDED_MPS = 1.5  # the constant policy's forward speed (tests/px4/conftest.py)
@@ -27,10 +27,31 @@ def heading_ned_rad(gcs: GroundStation) -> float:
     return math.radians(gp.hdg / 100.0)
 
 
-def engaged(gcs: GroundStation, since_s: float) -> float:
-    """Seconds from `since_s` until PX4 reports OFFBOARD (fails after ENGAGE_GUARD_S)."""
-    gcs.wait_until(lambda: gcs.mode is Px4Mode.OFFBOARD, ENGAGE_GUARD_S, "OFFBOARD")
-    return time.monotonic() - since_s
+def engaged(gcs: GroundStation, since_s: float, run: Any = None) -> float:
+    """The pilot engages, as the shipped config (`engage = "operator"`) wants: once the daemon
+    streams (its log says "ready"), the ground station switches the vehicle to OFFBOARD.
+    (PX4 acknowledges the switch even without setpoints, then stays where it is.) Seconds from
+    `since_s` until PX4 reports OFFBOARD (fails after ENGAGE_GUARD_S)."""
+    if run is not None:
+        logged(run, "ready: streaming")
+    deadline = since_s + ENGAGE_GUARD_S
+    while True:
+        gcs.set_mode(Px4Mode.OFFBOARD)
+        try:
+            gcs.wait_until(
+                lambda: gcs.mode is Px4Mode.OFFBOARD, HEARTBEAT_SLACK_S + 1.0, "OFFBOARD"
+            )
+            return time.monotonic() - since_s
+        except GroundStationError:
+            assert time.monotonic() < deadline, "PX4 never took the pilot's switch to OFFBOARD"
+
+
+def logged(run: Any, text: str, timeout_s: float = ENGAGE_GUARD_S) -> None:
+    """Wait until a health event of the run's flight log contains `text` (flushed each 1 s)."""
+    deadline = time.monotonic() + timeout_s
+    while not any(text in e for e in run.health_lines()):
+        assert time.monotonic() < deadline, (text, run.health_lines())
+        time.sleep(0.3)
 
 
 def mean_velocity(gcs: GroundStation, seconds: float) -> tuple[float, float]:
@@ -63,7 +84,10 @@ def test_engages_flies_the_commanded_direction_and_yields_to_the_pilot(
     heading = heading_ned_rad(gcs)  # forward in body FLU = this heading (yaw follows velocity)
     start = time.monotonic()
     run = daemon_run(vehicle)
-    engaged(gcs, start)
+    logged(run, "ready: streaming")  # streaming: only the pilot's switch engages
+    time.sleep(1.0)
+    assert all(m.mode is Px4Mode.HOLD for m in gcs.modes_since(start))
+    engaged(gcs, start, run)
     time.sleep(3.0)
     assert gcs.mode is Px4Mode.OFFBOARD
     assert_flies_forward(gcs, heading)
@@ -85,7 +109,7 @@ def test_sigterm_ends_in_hold_and_exit_0(shipped: Any, daemon_run: Any) -> None:
     vehicle = shipped
     gcs = vehicle.gcs
     run = daemon_run(vehicle)
-    engaged(gcs, time.monotonic())
+    engaged(gcs, time.monotonic(), run)
     time.sleep(1.5)
     stopped = time.monotonic()
     run.signal(signal.SIGTERM)
@@ -101,7 +125,7 @@ def test_a_stalled_camera_hovers_then_holds(shipped: Any, daemon_run: Any) -> No
     vehicle = shipped
     gcs = vehicle.gcs
     run = daemon_run(vehicle, failsafe_after_s=2.0)
-    engaged(gcs, time.monotonic())
+    engaged(gcs, time.monotonic(), run)
     time.sleep(2.0)
     assert math.hypot(*mean_velocity(gcs, 0.3)) > 0.8  # flying before the stall
     stalled = time.monotonic()
@@ -124,7 +148,7 @@ def sigkill_ends_in_px4_failsafe(vehicle: Any, daemon_run: Any) -> tuple[float, 
     """Kill the flying daemon; (seconds until PX4 left OFFBOARD, the mode it chose)."""
     gcs = vehicle.gcs
     run = daemon_run(vehicle)
-    engaged(gcs, time.monotonic())
+    engaged(gcs, time.monotonic(), run)
     time.sleep(1.0)
     killed = time.monotonic()
     run.signal(signal.SIGKILL)
@@ -144,9 +168,50 @@ def test_sigkill_with_the_shipped_parameters_ends_in_hold_after_com_of_loss_t(
     after_s, mode = sigkill_ends_in_px4_failsafe(vehicle, daemon_run)
     assert mode is Px4Mode.HOLD  # COM_OBL_RC_ACT 5
     assert 1.0 <= after_s <= 1.0 + HEARTBEAT_SLACK_S  # COM_OF_LOSS_T 1 s, heartbeat-timed
-    # PX4 would resume OFFBOARD on the next setpoint (issue 19 finding 2): the pilot's mode
-    # change is what cancels that.
-    assert vehicle.gcs.set_mode(Px4Mode.HOLD) is MavResult.ACCEPTED
+
+    # systemd restarts the daemon. PX4 still intends OFFBOARD and would resume it on the first
+    # setpoint (issue 19 finding 2): the new daemon re-asserts Hold, then streams; the vehicle
+    # stays in Hold until the pilot switches to OFFBOARD.
+    gcs = vehicle.gcs
+    restarted = time.monotonic()
+    run = daemon_run(vehicle)
+    logged(run, "ready: streaming")
+    time.sleep(2.0)
+    assert all(m.mode is Px4Mode.HOLD for m in gcs.modes_since(restarted)), gcs.mode_changes(
+        restarted
+    )
+    engaged(gcs, time.monotonic(), run)
+    run.signal(signal.SIGTERM)
+    assert run.wait() == 0, run.output()
+    gcs.wait_until(lambda: gcs.mode is Px4Mode.HOLD, HEARTBEAT_SLACK_S + 1.0, "HOLD")
+
+
+def test_no_engagement_during_a_px4_failsafe(shipped: Any, daemon_run: Any) -> None:
+    """A geofence breach (issue 19 finding 3): PX4 holds in a failsafe (its heartbeat says
+    CRITICAL); the daemon does not stream, so not even the pilot's switch can engage."""
+    vehicle = shipped
+    gcs = vehicle.gcs
+    assert gcs.set_mode(Px4Mode.HOLD) is MavResult.ACCEPTED  # the pilot's mode, nothing pending
+    fence = gcs.get_param("GF_MAX_VER_DIST")
+    assert fence is not None
+    try:
+        gcs.set_param("GF_MAX_VER_DIST", 2.0, 9)  # the vehicle hovers about 5 m up: a breach
+        gcs.wait_until(
+            lambda: any("Failsafe activated" in t for t in gcs.texts_since(0.0)), 5.0, "failsafe"
+        )
+        run = daemon_run(vehicle)
+        logged(run, "PX4 is in a failsafe")
+        tried = time.monotonic()
+        gcs.set_mode(Px4Mode.OFFBOARD)  # PX4 acknowledges, but has no setpoints to switch to
+        time.sleep(HEARTBEAT_SLACK_S + 1.0)
+        assert all(m.mode is Px4Mode.HOLD for m in gcs.modes_since(tried))
+        assert "ready" not in run.health_events()
+    finally:
+        gcs.set_param("GF_MAX_VER_DIST", fence, 9)
+    gcs.set_mode(Px4Mode.HOLD)  # back inside the fence; the pilot's mode change ends the failsafe
+    engaged(gcs, time.monotonic(), run)
+    run.signal(signal.SIGTERM)
+    assert run.wait() == 0, run.output()
 
 
 def test_sigkill_with_stock_parameters_is_not_hold(stock: Any, daemon_run: Any) -> None:
