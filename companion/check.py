@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from companion.errors import CompanionError, ConfigError, problems_of
+from companion.policy import PolicyConfig
 from companion.service_unit import INSTALLED_UNIT, ServiceSandbox, sandbox_of
 
 OK, WARN, FAIL = "ok", "warn", "FAIL"
@@ -125,6 +126,22 @@ def _service_directory(path: Path, sandbox: ServiceSandbox) -> tuple[str, str]:
     return verdict, f"{path}{created}, {free}"
 
 
+def _platform(policy_config: PolicyConfig) -> CheckItem:
+    """Load the policy as the daemon does (warm-up, fusion) and run it on its export's reference
+    image: a platform that computes it wrongly (a CPU or library fault) is found before flight."""
+    from companion.policy import Policy
+
+    try:
+        policy = Policy.load(policy_config)
+    except CompanionError as exc:
+        return CheckItem("platform", FAIL, str(exc))
+    try:
+        verdict = OK if policy.reference_error_mps is not None else WARN
+        return CheckItem("platform", verdict, policy.reference_text)
+    finally:
+        policy.close(2.0)
+
+
 def run_checks(config_path: str | Path, unit_path: Path | None = INSTALLED_UNIT) -> list[CheckItem]:
     """Every check's result; stops after the config check if the config is unusable (then one
     FAIL line per problem of the file, all of them). `unit_path`: the service's unit file, whose
@@ -157,6 +174,7 @@ def run_checks(config_path: str | Path, unit_path: Path | None = INSTALLED_UNIT)
                 f"output {output.get('frame')} {output.get('units')}",
             )
         )
+        items.append(_platform(config.policy))
 
     for face, camera in config.cameras.faces.items():
         verdict, detail = _device(camera.device)

@@ -151,6 +151,9 @@ else
 fi
 
 install_etc "$REPO/systemd/companion.toml" "$CONFIG_DIR/companion.toml" 0644
+# PX4's parameters (drone 1's; `companion params file --sysid N` renders each drone's), the
+# default of `companion check --autopilot`.
+install_etc "$REPO/firmware_cfg/px4/companion.params" "$CONFIG_DIR/companion.params" 0644
 install_etc "$REPO/firmware_cfg/udev/99-openmv.rules" "$ROOT/etc/udev/rules.d/99-openmv.rules" 0644
 install_etc "$REPO/systemd/$UNIT" "$ROOT/etc/systemd/system/$UNIT" 0644
 system udevadm control --reload-rules

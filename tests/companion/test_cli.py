@@ -51,10 +51,15 @@ def write_config(tmp_path: Path, devices: list[str], model: Path, extra: str = "
 def test_check_reports_ready_for_a_good_drone(
     tmp_path: Path, ptys: list[str], make_policy_file: Any, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    from sim_harness.learning.export import add_reference
+
     model = make_policy_file("constant")
+    add_reference(model)  # as every export records it
     assert cli.main(["check", "--config", str(write_config(tmp_path, ptys, model))]) == 0
     out = capsys.readouterr().out
     assert out.strip().splitlines()[-1] == "ready"
+    assert "reference output within" in line_of(out, "] platform ")
+    assert line_of(out, "] platform ").startswith("[  ok]")
     model_line = line_of(out, "] model ")
     assert model_line.startswith("[  ok]") and str(model) in model_line
     assert f"sha256 {sha256_file(model)} (pinned in the config)" in model_line
@@ -62,6 +67,26 @@ def test_check_reports_ready_for_a_good_drone(
     assert up.startswith("[  ok]") and ptys[4] in up
     assert "udpin://127.0.0.1:14540 (network link: not contacted here)" in out
     assert "(will be created)" in out and "GB free" in out
+
+
+def test_check_fails_a_platform_that_computes_the_policy_wrongly(
+    tmp_path: Path, ptys: list[str], make_policy_file: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The export's reference output moved by 8.9 m/s (as a faulty CPU would compute it)."""
+    import json
+
+    from companion.model_file import sidecar_path
+    from sim_harness.learning.export import add_reference
+
+    model = make_policy_file("constant")
+    add_reference(model)
+    sidecar = sidecar_path(model)
+    record = json.loads(sidecar.read_text())
+    record["reference"]["output_body_flu_mps"][0] += 8.9
+    sidecar.write_text(json.dumps(record))
+    assert cli.main(["check", "--config", str(write_config(tmp_path, ptys, model))]) == 1
+    platform = line_of(capsys.readouterr().out, "] platform ")
+    assert platform.startswith("[FAIL]") and "exceeds the tolerance" in platform
 
 
 def test_check_names_every_problem_and_exits_1(

@@ -372,7 +372,9 @@ def test_a_vehicle_on_the_ground_is_never_engaged(
                 await until(lambda: daemon.ready, GUARD_S, "READY")
                 await asyncio.sleep(1.0)
                 assert daemon.health.state is HealthState.STARTING
-                assert daemon.health.reason == "pipeline healthy, not engaged"
+                assert daemon.health.reason == (
+                    "pipeline healthy, not engaged: the vehicle is not armed and in the air"
+                )
             finally:
                 daemon.request_stop("test over")
                 await asyncio.wait_for(run, 15.0)
