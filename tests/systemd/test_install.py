@@ -32,7 +32,8 @@ def checkout_copy(tmp_path: Path) -> Path:
             shutil.copytree(source, copy / name, ignore=shutil.ignore_patterns("__pycache__"))
         else:
             shutil.copy2(source, copy / name)
-    shutil.copytree(REPO / "firmware_cfg" / "udev", copy / "firmware_cfg" / "udev")
+    for part in ("udev", "px4"):
+        shutil.copytree(REPO / "firmware_cfg" / part, copy / "firmware_cfg" / part)
     return copy
 
 
