@@ -217,7 +217,7 @@ def test_saliency_explains_what_the_policy_file_predicts(untrained_policy_path, 
     import numpy as np
     import torch
 
-    from companion.model_file import base_metadata, save_model
+    from companion.model_file import base_metadata, save_model, torchscript_calls
     from sim_harness.experiments.gradcam_strip import saliency
     from sim_harness.experiments.vision_controller import load_policy
 
@@ -230,7 +230,8 @@ def test_saliency_explains_what_the_policy_file_predicts(untrained_policy_path, 
         np.testing.assert_allclose(vel, policy.infer_batch(image[None])[0], atol=1e-4)
     # A policy file without eager weights gets no strip (and no error).
     bare = tmp_path / "bare.pt"
-    module = torch.jit.load(str(untrained_policy_path))
+    with torchscript_calls():
+        module = torch.jit.load(str(untrained_policy_path))
     save_model(module, base_metadata(), bare)
     assert saliency(bare, image) is None
 
