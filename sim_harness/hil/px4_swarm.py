@@ -44,40 +44,41 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pymavlink.dialects.v20 import common as mavlink
 
 from companion.frames import ned_to_enu, quat_ned_frd_to_enu_flu
 from companion.geo import GlobalPosition, enu_offset_m
-from companion.param_check import BOARD_ONLY, read_params_file
 from sim_harness.errors import SimError
 from sim_harness.hil.camera_side import CameraSide, PoseBoard
 from sim_harness.hil.drone import (
-    LOOPBACK_TCP,
     DroneSetup,
     daemon_document,
-    free_tcp_port,
     launch_daemon,
     toml_text,
 )
 from sim_harness.hil.lateness import Lateness
+from sim_harness.hil.px4_drone import (
+    HEARTBEAT_SLACK_S,
+    IDENTITY_Q,
+    ORIGIN,
+    STREAMS_HZ,
+    TAKEOFF_TIMEOUT_S,
+    Px4Drone,
+    shipped_params,
+)
 from sim_harness.hil.px4_logic import Px4Mode
-from sim_harness.hil.px4_params import SHIPPED_PARAMS
 from sim_harness.hil.px4_pose_station import PoseStation
 from sim_harness.hil.px4_sitl import (
     Px4Instance,
     Px4Sitl,
-    RunningPx4,
     free_instance_indices,
     tarball_from_env,
     unpack,
 )
-from sim_harness.hil.results import flight_log_stats
+from sim_harness.hil.px4_world_clock import WorldClock
 from sim_harness.hil.swarm import (
     SWITCH_INTERVAL_S,
     HilConfig,
@@ -92,61 +93,6 @@ from sim_harness.sim.world import World
 
 log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
-POSE_RATE_HZ = 50.0  # LOCAL_POSITION_NED and ATTITUDE_QUATERNION on the GCS link
-TARGET_RATE_HZ = 10.0  # POSITION_TARGET_LOCAL_NED: what PX4 flies (the flight log's setpoint)
-TAKEOFF_TIMEOUT_S = 60.0
-HEARTBEAT_SLACK_S = 2.5  # PX4 sends HEARTBEAT at 1 Hz on the GCS link
-IDENTITY_Q = np.array([1.0, 0.0, 0.0, 0.0])
-ORIGIN = GlobalPosition(DEFAULT_ORIGIN.lat_deg, DEFAULT_ORIGIN.lon_deg, DEFAULT_ORIGIN.alt_amsl_m)
-# The GCS link's streams: SIH's vehicle at the pose rate, PX4's estimate and target for the log,
-# the rest PX4 streams at 50 Hz slowed down (parsing them costs the harness's interpreter).
-STREAMS_HZ = {
-    mavlink.MAVLINK_MSG_ID_HIL_STATE_QUATERNION: POSE_RATE_HZ,
-    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 25.0,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 25.0,
-    mavlink.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: TARGET_RATE_HZ,
-    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE: 1.0,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET: 1.0,
-    mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: 1.0,
-}
-
-
-@dataclass
-class Px4Drone:
-    """One drone: its PX4 instance, the harness's ground station on it, and its daemon."""
-
-    setup: DroneSetup
-    px4: RunningPx4
-    gcs: PoseStation
-    faces: dict[str, dict[str, str]]
-    migration_point_global: tuple[float, float, float] | None
-    telemetry_endpoint: str = field(default_factory=lambda: f"{LOOPBACK_TCP}:{free_tcp_port()}")
-    process: subprocess.Popen[bytes] | None = None
-    exit_code: int | None = None
-    takeoff_s: float | None = None
-
-    @property
-    def config_path(self) -> Path:
-        return self.setup.folder / "companion.toml"
-
-    @property
-    def flights_dir(self) -> Path:
-        return self.setup.folder / "flights"
-
-    @property
-    def alive(self) -> bool:
-        return self.process is not None and self.process.poll() is None
-
-    def daemon_log_tail(self, lines: int = 5) -> str:
-        path = self.setup.folder / "daemon.log"
-        text = path.read_text(errors="replace") if path.exists() else ""
-        return "\n".join(text.splitlines()[-lines:])
-
-
-def shipped_params() -> dict[str, float]:
-    """The shipped parameter file as PX4 start-up parameters (names SITL has: not board-only)."""
-    return {r.name: r.value for r in read_params_file(SHIPPED_PARAMS) if r.name not in BOARD_ONLY}
 
 
 class Px4Swarm:
@@ -338,7 +284,7 @@ class Px4Swarm:
                 for drone in self.drones:
                     self._start_daemon(drone, sitl)
                 daemon_t0 = time.monotonic()
-                clock = _WorldClock(self, world, board, lateness)
+                clock = WorldClock(self, world, board, lateness)
                 deadline = daemon_t0 + cfg.engage_timeout_s
                 while not self._engaged(engage_s, daemon_t0):
                     if time.monotonic() > deadline:
@@ -455,100 +401,6 @@ class Px4Swarm:
         ):
             time.sleep(0.05)
 
-    # -- results ---------------------------------------------------------------------------
-
-    def drone_rows(self, engage_s: list[float | None]) -> list[dict[str, Any]]:
-        """Per drone: engagement, PX4's modes (from its heartbeats), take-off, its flight log."""
-        t0 = self.flight_t0
-        rows = []
-        for drone, engaged in zip(self.drones, engage_s, strict=True):
-            changes = drone.gcs.mode_changes()
-            last = changes[-1].mode if changes else None
-            rows.append(
-                {
-                    "drone": drone.setup.drone_id,
-                    "engage_s_after_daemon_start": None if engaged is None else round(engaged, 2),
-                    "exit_code": drone.exit_code,
-                    "stopped_by_fault": None,
-                    "mode_history": [
-                        {
-                            "t_s": round(m.t_s - t0, 2),
-                            "mode": m.mode.name if m.mode else str(m.custom_mode),
-                            "reason": "PX4 heartbeat",
-                        }
-                        for m in changes
-                    ],
-                    "final_mode": last.name if last is not None else None,
-                    "ended_in_offboard": last is Px4Mode.OFFBOARD,
-                    "frames_sent": None,
-                    "frames_dropped": None,
-                    "camera_connections": None,
-                    "migration_point_global": drone.migration_point_global,
-                    "takeoff_s": None if drone.takeoff_s is None else round(drone.takeoff_s, 2),
-                    "px4_instance": drone.px4.spec.index,
-                    **flight_log_stats(drone.flights_dir),
-                }
-            )
-        return rows
-
-    def px4_summary(self) -> dict[str, Any]:
-        return {
-            "pose_rate_hz": POSE_RATE_HZ,
-            "pose_gap_max_ms": [round(g * 1e3, 1) for g in self.pose_gap_max_s],
-            "world_steps_late_loop_behind": self.world_steps_behind,
-            "world_steps_late_pose_stale": self.world_steps_pose_stale,
-            "estimate_error_max_m": [round(e, 3) for e in self.estimate_error_max_m],
-            "frame_check_m": [
-                None if c is None else {"horizontal": round(c[0], 3), "up": round(c[1], 3)}
-                for c in self.frame_check_m
-            ],
-            "world_origin": [
-                DEFAULT_ORIGIN.lat_deg,
-                DEFAULT_ORIGIN.lon_deg,
-                DEFAULT_ORIGIN.alt_amsl_m,
-            ],
-        }
-
 
 class _Abort(Exception):
     """The flight cannot start or go on."""
-
-
-class _WorldClock:
-    """The world on the 100 Hz grid: every drone where its PX4 says, to the pose board."""
-
-    def __init__(self, swarm: Px4Swarm, world: World, board: PoseBoard, lateness: Lateness) -> None:
-        self.swarm, self.world, self.board, self.lateness = swarm, world, board, lateness
-        self.dt_s = swarm.config.rates.physics_dt_s
-        self.next_step = time.monotonic()
-        self.pose_late_s = swarm.config.late_physics_s + 1.0 / POSE_RATE_HZ
-        self.last = swarm._poses(self.next_step)
-
-    def advance_until(self, until: float) -> set[tuple[int, int]]:
-        touching: set[tuple[int, int]] = set()
-        while True:
-            now = time.monotonic()
-            touching |= self._run_due(now)
-            if now >= until:
-                return touching
-            time.sleep(max(0.0, min(self.next_step, until) - time.monotonic()))
-
-    def _run_due(self, now: float) -> set[tuple[int, int]]:
-        lat, late_s = self.lateness, self.swarm.config.late_physics_s
-        touching: set[tuple[int, int]] = set()
-        if self.next_step > now:
-            return touching
-        behind = now - self.next_step
-        missed = math.floor(behind / self.dt_s)  # steps not taken: one pose update covers them
-        lat.physics_steps += 1 + missed
-        stale = self.swarm._pose_age_s(now) > self.pose_late_s
-        lat.physics_late += (behind > late_s or stale) + missed
-        self.swarm.world_steps_behind += (behind > late_s) + missed
-        self.swarm.world_steps_pose_stale += stale
-        lat.physics_max_behind_s = max(lat.physics_max_behind_s, behind)
-        self.last = pos, _, q = self.swarm._poses(now)
-        self.board.write(pos, q)
-        if self.world.may_touch(pos):
-            touching.update(self.world.contacts(pos, q))
-        self.next_step += (1 + missed) * self.dt_s
-        return touching

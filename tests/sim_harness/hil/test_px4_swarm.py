@@ -13,9 +13,10 @@ import pytest
 from companion.frames import quat_enu_flu_to_ned_frd, quat_from_yaw
 from companion.geo import GlobalPosition, HomePosition, global_to_local_enu
 from companion.param_check import BOARD_ONLY
+from sim_harness.hil.px4_drone import shipped_params
 from sim_harness.hil.px4_gcs import PositionSample
 from sim_harness.hil.px4_pose_station import TruthSample
-from sim_harness.hil.px4_swarm import Px4Swarm, shipped_params
+from sim_harness.hil.px4_swarm import Px4Swarm
 from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, home_of
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
