@@ -13,6 +13,7 @@ from sim_harness.dataset.inspect import inspect_dataset
 from sim_harness.dataset.spec import PRESETS, DatasetSpec
 from sim_harness.dataset.store import open_dataset
 from sim_harness.errors import ConfigError
+from sim_harness.sim.executor import add_cluster_options, cluster_choice
 from sim_harness.sim.out_dir import require_writable_dir
 from sim_harness.sim.renderers import add_renderer_option
 
@@ -33,7 +34,8 @@ def add_dataset_commands(sub: Any) -> Any:
         "generate",
         help="generate (or resume) a dataset",
         description="Generate the paper's dataset. Interrupted? Run the same command again: it "
-        "resumes where it stopped. The same seed gives the same dataset with any --workers.",
+        "resumes where it stopped. The same seed gives the same dataset with any --workers "
+        "and on a Ray cluster (--ray).",
     )
     g.add_argument("--preset", default="quick", choices=sorted(PRESETS), help="default quick")
     g.add_argument("--out", type=Path, default=None, help="folder (default data/<preset>-s<seed>)")
@@ -46,6 +48,7 @@ def add_dataset_commands(sub: Any) -> Any:
     g.add_argument("--shard", type=_shard, default=(0, 1), help="INDEX/COUNT (default 0/1)")
     g.add_argument("--no-progress", action="store_true")
     add_renderer_option(g)
+    add_cluster_options(g)
     g.set_defaults(handler=_generate)
     i = dsub.add_parser("inspect", help="counts, splits, terminations, target stats, figures")
     i.add_argument("dataset", type=Path)
@@ -81,11 +84,17 @@ def _generate(args: argparse.Namespace) -> int:
     spec = DatasetSpec.preset(args.preset, **overrides)
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    cluster = cluster_choice(args)
     out = args.out or Path("data") / f"{args.preset}-s{args.seed}"
     require_writable_dir(out)
     try:
         dataset = generate(
-            out, spec, workers=args.workers, progress=not args.no_progress, command=command_line()
+            out,
+            spec,
+            workers=args.workers,
+            progress=not args.no_progress,
+            command=command_line(),
+            cluster=cluster,
         )
     except KeyboardInterrupt:
         print(

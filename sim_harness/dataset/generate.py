@@ -14,13 +14,11 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import multiprocessing as mp
 import os
 import shutil
 import subprocess
 import time
 from collections.abc import Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass
 from importlib import metadata
 from pathlib import Path
@@ -37,6 +35,7 @@ from sim_harness.dataset.store import (
     SPEC,
     Dataset,
     RunSummary,
+    encode_run,
     open_dataset,
     pixel_stats,
     read_run_summary,
@@ -44,9 +43,10 @@ from sim_harness.dataset.store import (
     run_path,
     stored_runs,
     write_json,
-    write_run,
+    write_run_bytes,
 )
 from sim_harness.errors import DatasetError
+from sim_harness.sim.executor import ClusterChoice, Task, TaskPool, announce, open_pool
 from sim_harness.sim.progress import ProgressBar, progress_bar
 from sim_harness.sim.render import Renderer
 from sim_harness.sim.renderers import make_renderer
@@ -82,8 +82,11 @@ class StageTimes:
 _WORKER: tuple[World, Renderer, str] | None = None
 
 
-def _make_run(root: Path, spec: DatasetSpec, split: str, run_index: int) -> tuple[int, StageTimes]:
-    """Simulate and store one run (in a worker process or in-process); returns its size, times."""
+def _make_run(
+    worker_root: Path | None, spec: DatasetSpec, split: str, run_index: int
+) -> tuple[int, StageTimes, bytes | None]:
+    """Simulate one run (in a worker or in-process): its size, times, and its file's bytes for
+    the driver to store, or None when written here under `worker_root` (a folder it shares)."""
     global _WORKER
     if _WORKER is None or (_WORKER[0].n_agents, _WORKER[2]) != (spec.n_agents, spec.renderer):
         if _WORKER is not None:
@@ -92,11 +95,24 @@ def _make_run(root: Path, spec: DatasetSpec, split: str, run_index: int) -> tupl
     world, renderer, _ = _WORKER
     run = simulate_run(spec, split, run_index, world, renderer)
     started = time.perf_counter()
-    write_run(root, run)
+    data: bytes | None = encode_run(run)
+    if worker_root is not None and data is not None:
+        write_run_bytes(worker_root, split, run_index, data)
+        data = None
     t = run.timing
-    return run.n_samples, StageTimes(
-        t.render_s, t.physics_s, t.teacher_s, time.perf_counter() - started
-    )
+    times = StageTimes(t.render_s, t.physics_s, t.teacher_s, time.perf_counter() - started)
+    return run.n_samples, times, data
+
+
+def store_run(root: Path, split: str, run_index: int, data: bytes | None) -> None:
+    """Write a run a worker returned (`data`), or check that the worker wrote it where we read."""
+    if data is not None:
+        write_run_bytes(root, split, run_index, data)
+    elif not run_path(root, split, run_index).exists():
+        raise DatasetError(
+            f"{split} run {run_index} was written by a worker but is not in {root}: "
+            "--ray-shared-dir must be this folder as the workers see it"
+        )
 
 
 def check_or_write_spec(root: Path, spec: DatasetSpec) -> None:
@@ -162,13 +178,13 @@ def _generate_split(
     root: Path,
     spec: DatasetSpec,
     split: str,
-    pool: ProcessPoolExecutor | None,
-    workers: int,
+    pool: TaskPool,
+    worker_root: Path | None,
     progress: bool,
     times: StageTimes,
 ) -> None:
     state = _SplitProgress(root, spec, split)
-    in_flight: dict[Future[tuple[int, StageTimes]], int] = {}
+    in_flight: dict[Task[tuple[int, StageTimes, bytes | None]], int] = {}
 
     def record(k: int, n: int, t: StageTimes, bar: ProgressBar[Any]) -> None:
         state.sizes[k] = n
@@ -189,21 +205,27 @@ def _generate_split(
         smoothing=0.05,
     ) as bar:
         while not state.done():
-            if pool is None:
-                k = state.next_missing(set())
-                record(k, *_make_run(root, spec, split, spec.run_index(split, k)), bar)
-                continue
-            while len(in_flight) < 2 * workers:
+            # At most `slots` runs in flight: a finished run waits here only until it is stored.
+            while len(in_flight) < pool.info.slots:
                 busy = set(in_flight.values())
                 k = state.next_missing(busy)
                 if busy and not state.worth_starting(k, busy):
                     break
-                in_flight[pool.submit(_make_run, root, spec, split, spec.run_index(split, k))] = k
-            finished, _ = wait(list(in_flight), return_when=FIRST_COMPLETED)
-            for future in finished:
-                record(in_flight.pop(future), *future.result(), bar)
-        for future in in_flight:  # started but not needed: let them finish, then drop them
-            future.result()
+                index = spec.run_index(split, k)
+                task = pool.submit(
+                    _make_run, worker_root, spec, split, index, label=f"{split}-run-{index}"
+                )
+                in_flight[task] = k
+            for task in pool.wait(list(in_flight)):
+                k = in_flight.pop(task)
+                n, t, data = task.result()
+                started = time.perf_counter()
+                store_run(root, split, spec.run_index(split, k), data)
+                t.write_s += time.perf_counter() - started
+                record(k, n, t, bar)
+        for task, k in in_flight.items():  # started but not needed: let them finish, drop them
+            if task.result()[2] is None:  # a worker wrote it
+                run_path(root, split, spec.run_index(split, k)).unlink(missing_ok=True)
     n_runs, _ = state.prefix()
     for k in state.sizes:
         if k >= n_runs:
@@ -313,8 +335,14 @@ def generate(
     workers: int | None = None,
     progress: bool = True,
     command: str = "",
+    cluster: ClusterChoice | None = None,
 ) -> Dataset:
-    """Generate (or resume) the dataset `spec` in `root`; returns it when complete."""
+    """Generate (or resume) the dataset `spec` in `root`; returns it when complete.
+
+    `cluster`: run on Ray (workers return each run to this process, which writes it; or write it
+    themselves under `cluster.shared_dir`); None: `workers` local processes (default: all cores).
+    The dataset is the same byte for byte either way.
+    """
     root = Path(root)
     workers = workers or os.cpu_count() or 1
     check_or_write_spec(root, spec)
@@ -325,13 +353,12 @@ def generate(
     times = StageTimes()
     started = time.perf_counter()
     before = {s: len(stored_runs(root, s)) for s in SPLITS}
-    pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) if workers > 1 else None
-    try:
+    with open_pool(workers, cluster) as pool:
+        announce(pool, progress)
+        worker_root = root if pool.same_files else (cluster.shared_dir if cluster else None)
         for split in SPLITS:
-            _generate_split(root, spec, split, pool, workers, progress, times)
-    finally:
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+            _generate_split(root, spec, split, pool, worker_root, progress, times)
+        info = pool.info
     wall = time.perf_counter() - started
     runs = {
         s: [spec.run_index(s, k) for k in range(_SplitProgress(root, spec, s).prefix()[0])]
@@ -340,7 +367,8 @@ def generate(
     made = {s: len(stored_runs(root, s)) - before[s] for s in SPLITS}
     busy = sum(asdict(times).values())
     generation = {
-        "workers": workers,
+        "workers": info.cpus,
+        "pool": info.as_dict(),
         "wall_s": round(wall, 3),
         "new_runs": made,
         "stage_share": {k: round(v / busy, 4) for k, v in asdict(times).items()} if busy else {},

@@ -27,11 +27,8 @@ as they finish, so an interrupted aggregation resumes with the same command. Tra
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import multiprocessing as mp
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.validation import require_int_range
-from sim_harness.dataset.generate import check_or_write_spec, finalize
+from sim_harness.dataset.generate import check_or_write_spec, finalize, store_run
 from sim_harness.dataset.runs import (
     RunData,
     RunTiming,
@@ -49,7 +46,13 @@ from sim_harness.dataset.runs import (
     termination,
 )
 from sim_harness.dataset.spec import SPLITS, DatasetSpec
-from sim_harness.dataset.store import Dataset, remove_partial_files, stored_runs, write_run
+from sim_harness.dataset.store import (
+    Dataset,
+    encode_run,
+    remove_partial_files,
+    stored_runs,
+    write_run_bytes,
+)
 from sim_harness.errors import ConfigError
 from sim_harness.experiments.suites import EVAL_SEED_BASE, EXPERIMENTS, SHIPPED_MODEL_PATH
 from sim_harness.experiments.vision_controller import (
@@ -58,7 +61,9 @@ from sim_harness.experiments.vision_controller import (
     VisionController,
     load_policy,
 )
-from sim_harness.sim.progress import progress_bar
+from sim_harness.experiments.worker_policy import PolicySource, adopt, release, worker_policy
+from sim_harness.sim.executor import ClusterChoice, Task, TaskPool, announce, open_pool
+from sim_harness.sim.progress import ProgressBar, progress_bar
 from sim_harness.sim.renderers import make_renderer, warn_if_trained_elsewhere
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import build_scenario
@@ -209,29 +214,78 @@ def fly_and_record(config: AggregateConfig, k: int, policy: BatchPolicy) -> RunD
     )
 
 
-_worker_policy: Any = None
+def _make_run(
+    worker_root: Path | None, config: AggregateConfig, k: int, source: PolicySource
+) -> tuple[int, bytes | None]:
+    """Fly run k (in a worker): its size, and its file's bytes for the driver to store, or None
+    when written here under `worker_root` (a folder it shares with the driver)."""
+    run = fly_and_record(config, k, worker_policy(source))
+    data = encode_run(run)
+    if worker_root is None:
+        return run.n_samples, data
+    write_run_bytes(worker_root, run.split, k, data)
+    return run.n_samples, None
 
 
-def _init_worker(model_path: Path) -> None:
-    global _worker_policy
-    _worker_policy = load_policy(model_path, threads=1)
-
-
-def _make_run(root: Path, config: AggregateConfig, k: int) -> int:
-    run = fly_and_record(config, k, _worker_policy)
-    write_run(root, run)
-    return run.n_samples
+def _fly_rounds(
+    root: Path,
+    config: AggregateConfig,
+    todo: list[int],
+    pool: TaskPool,
+    worker_root: Path | None,
+    bar: ProgressBar[Any],
+) -> None:
+    """Fly runs `todo` on `pool`, at most `pool.info.slots` in flight, storing each as it ends."""
+    source = pool.share(PolicySource.read(config.model_path, embed=not pool.same_files))
+    pending = list(reversed(todo))
+    in_flight: dict[Task[tuple[int, bytes | None]], int] = {}
+    while pending or in_flight:
+        while pending and len(in_flight) < pool.info.slots:
+            k = pending.pop()
+            task = pool.submit(
+                _make_run, worker_root, config, k, source, label=f"aggregate-run-{k}"
+            )
+            in_flight[task] = k
+        for task in pool.wait(list(in_flight)):
+            k = in_flight.pop(task)
+            n_samples, data = task.result()
+            store_run(root, config.split_of(k), k, data)
+            bar.update()
+            bar.set_postfix(samples=n_samples)
 
 
 def aggregate(
-    root: str | Path, config: AggregateConfig, progress: bool = True, command: str = ""
+    root: str | Path,
+    config: AggregateConfig,
+    progress: bool = True,
+    command: str = "",
+    cluster: ClusterChoice | None = None,
 ) -> Dataset:
-    """Fly (or resume) one aggregation round into `root`; returns the dataset when complete."""
+    """Fly (or resume) one aggregation round into `root`; returns the dataset when complete.
+
+    `cluster`: fly on Ray (runs returned to this process, or written by the workers under
+    `cluster.shared_dir`) instead of `config.workers` local processes; the same dataset.
+    """
     root = Path(root)
     policy = load_policy(config.model_path, threads=1)  # refuse a bad file before any flight
-    warn_if_trained_elsewhere(policy.metadata, config.rules.renderer)
-    policy.close()
-    sha = hashlib.sha256(Path(config.model_path).read_bytes()).hexdigest()
+    try:
+        warn_if_trained_elsewhere(policy.metadata, config.rules.renderer)
+        adopt(policy)  # runs flown in this process (one worker) use it
+        return _aggregate(root, config, policy.sha256, progress, command, cluster)
+    finally:
+        release(policy)
+        policy.close()
+
+
+def _aggregate(
+    root: Path,
+    config: AggregateConfig,
+    sha: str,
+    progress: bool,
+    command: str,
+    cluster: ClusterChoice | None,
+) -> Dataset:
+    """`aggregate` once the policy (SHA-256 `sha`) has been loaded and checked."""
     rules = config.rules
     check_or_write_spec(root, rules)
     described = config.describe(sha)
@@ -249,18 +303,13 @@ def aggregate(
     remove_partial_files(root)
     done = {k for split in SPLITS for k in stored_runs(root, split)}
     todo = [k for k in range(config.runs) if k not in done]
-    ctx = mp.get_context("spawn")
-    with (
-        progress_bar(
+    with open_pool(config.workers, cluster) as pool:
+        announce(pool, progress)
+        worker_root = root if pool.same_files else (cluster.shared_dir if cluster else None)
+        with progress_bar(
             total=config.runs, initial=len(done), desc="aggregate", enabled=progress, unit="run"
-        ) as bar,
-        ProcessPoolExecutor(
-            config.workers, ctx, initializer=_init_worker, initargs=(config.model_path,)
-        ) as pool,
-    ):
-        for n_samples in pool.map(_make_run, [root] * len(todo), [config] * len(todo), todo):
-            bar.update()
-            bar.set_postfix(samples=n_samples)
+        ) as bar:
+            _fly_rounds(root, config, todo, pool, worker_root, bar)
     runs = {split: sorted(stored_runs(root, split)) for split in SPLITS}
     extra = {"aggregation": described}
     return finalize(root, rules, runs, command, extra=extra, id_extra=described)

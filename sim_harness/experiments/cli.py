@@ -3,6 +3,7 @@
 swarm-sim demo                                   # 9 drones, common + opposing goals, 1 seed
 swarm-sim experiments --suite paper --seeds 5 --model models/swarm_cnn.pt --out runs/paper
 swarm-sim experiments --suite generalization --workers 2
+swarm-sim experiments --suite bar --ray auto      # on the Ray cluster this machine joined
 swarm-sim experiments --suite bar                 # 10 evaluation seeds: the issue's bar
 """
 
@@ -33,6 +34,7 @@ from sim_harness.experiments.suites import (
     SUITES,
     SuiteConfig,
 )
+from sim_harness.sim.executor import add_cluster_options, cluster_choice
 from sim_harness.sim.out_dir import require_writable_dir
 from sim_harness.sim.renderers import add_renderer_option
 from sim_harness.sim.world import SimRates
@@ -77,7 +79,7 @@ def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_hel
         help=f"first scenario seed (default {EVAL_SEED_BASE}; evaluation seeds are >= 1000)",
     )
     p.add_argument("--out", type=Path, default=default_out, help=f"folder (default {default_out})")
-    p.add_argument("--workers", type=int, default=1, help="flights in parallel (default 1)")
+    p.add_argument("--workers", type=int, default=None, help="flights in parallel (default 1)")
     p.add_argument(
         "--low-pass",
         type=_cutoff,
@@ -137,6 +139,7 @@ def add_experiment_commands(sub: Any) -> None:
         f"{k} {v}" for k, v in DEFAULT_SEEDS.items()
     )
     _add_common_options(exp, Path("runs/experiments"), seeds_help + ")")
+    add_cluster_options(exp, shared_dir=False)
     exp.set_defaults(handler=_experiments)
 
 
@@ -156,13 +159,14 @@ def _run(
     args: argparse.Namespace, suite: str, default_seeds: int | None, demo: bool = False
 ) -> int:
     require_model(args.model)
+    cluster = cluster_choice(args) if hasattr(args, "ray") else None
     config = SuiteConfig(
         suite=suite,
         model_path=args.model,
         n_seeds=args.seeds if args.seeds is not None else default_seeds,
         seed_base=args.seed_base,
         low_pass_cutoff_hz=args.low_pass,
-        workers=args.workers,
+        workers=1 if args.workers is None else args.workers,
         rates=SimRates(),
         duration_s=args.duration,
         renderer=args.renderer,
@@ -180,7 +184,7 @@ def _run(
     from sim_harness.experiments.runner import run_suite, save_runs
     from sim_harness.experiments.stats import bar_checks
 
-    result = run_suite(config, on_run=progress, progress=not args.no_progress)
+    result = run_suite(config, on_run=progress, progress=not args.no_progress, cluster=cluster)
     save_runs(result, args.out)
     report = write_report(result, args.out, gradcam=not args.no_gradcam, demo=demo)
     scope = bar_scope(config, demo)
@@ -226,19 +230,21 @@ def add_aggregate_command(dsub: Any) -> None:
     a.add_argument(
         "--max-run-s", type=float, default=15.0, help="stop a flight after this long (default 15)"
     )
-    a.add_argument("--workers", type=int, default=1)
+    a.add_argument("--workers", type=int, default=None, help="flights in parallel (default 1)")
     a.add_argument("--no-progress", action="store_true")
     add_renderer_option(a)
+    add_cluster_options(a)
     a.set_defaults(handler=_aggregate)
 
 
 def _aggregate(args: argparse.Namespace) -> int:
+    cluster = cluster_choice(args)
     config = AggregateConfig(
         model_path=require_model(args.model or SHIPPED_MODEL_PATH),
         runs=args.runs,
         experiments=tuple(e.strip() for e in args.experiments.split(",") if e.strip()),
         seed_base=args.seed_base,
-        workers=args.workers,
+        workers=1 if args.workers is None else args.workers,
         rules=dataclasses.replace(
             default_rules(args.dispersion_m, args.max_run_s), renderer=args.renderer
         ),
@@ -246,7 +252,7 @@ def _aggregate(args: argparse.Namespace) -> int:
     require_writable_dir(args.out)
     started = time.perf_counter()
     try:
-        dataset = aggregate(args.out, config, not args.no_progress, command_line())
+        dataset = aggregate(args.out, config, not args.no_progress, command_line(), cluster)
     except KeyboardInterrupt:
         print(f"swarm-sim: interrupted; finished runs are kept in {args.out}", file=sys.stderr)
         return 130

@@ -1,18 +1,16 @@
 """Flying the experiment suites (`sim_harness.experiments.suites`): teacher and CNN, same seeds.
 
 Every experiment of the suite is flown by both controllers over the suite's seeds. Flights run in
-this process (`workers=1`) or in a pool of spawned processes, each loading the policy once with one
-torch thread. Results are ordered by experiment, controller and seed, whatever the order in which
-the flights finish.
+this process (`workers=1`), in a pool of spawned processes, or on a Ray cluster (`cluster`); each
+worker loads the policy once with one torch thread (`worker_policy`). Results are ordered by
+experiment, controller and seed, whatever the order in which the flights finish.
 """
 
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +22,9 @@ from sim_harness.experiments.vision_controller import (
     VisionController,
     load_policy,
 )
+from sim_harness.experiments.worker_policy import PolicySource, adopt, release, worker_policy
 from sim_harness.sim.controllers import Controller, TeacherController
+from sim_harness.sim.executor import ClusterChoice, Task, TaskPool, announce, open_pool
 from sim_harness.sim.renderers import make_renderer, warn_if_trained_elsewhere
 from sim_harness.sim.rollout import FlightLog, fly, save_flight, summarize
 from sim_harness.sim.scenarios import build_scenario
@@ -111,43 +111,42 @@ def fly_job(
     return RunRecord(job.experiment, job.controller, job.seed, flight, summarize(flight))
 
 
-_worker_policy: Policy | None = None  # one per pool process, loaded by `_init_worker`
-
-
-def _init_worker(model_path: Path) -> None:
-    global _worker_policy
-    _worker_policy = load_policy(model_path, threads=1)
-
-
-def _fly_in_worker(job: Job, config: SuiteConfig, progress: bool) -> RunRecord:
-    # Workers share the terminal: redrawn bars would overwrite each other, so plain lines.
-    return fly_job(job, config, _worker_policy, progress, progress_lines=True)
+def _fly_in_worker(
+    job: Job, config: SuiteConfig, source: PolicySource, progress: bool, lines: bool | None
+) -> RunRecord:
+    policy = worker_policy(source) if job.controller == "cnn" else None
+    return fly_job(job, config, policy, progress, progress_lines=lines)
 
 
 def _run_jobs(
-    jobs: list[Job], config: SuiteConfig, policy: Policy, progress: bool
+    jobs: list[Job], config: SuiteConfig, pool: TaskPool, progress: bool
 ) -> Iterator[tuple[Job, RunRecord]]:
-    if config.workers == 1:
-        for job in jobs:
-            yield job, fly_job(job, config, policy, progress)
-        return
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(
-        config.workers, context, initializer=_init_worker, initargs=(config.model_path,)
-    ) as pool:
-        futures = {pool.submit(_fly_in_worker, job, config, progress): job for job in jobs}
-        for future, job in futures.items():
-            yield job, future.result()
+    """Fly `jobs` on `pool`, at most `pool.info.slots` at a time; yields them as they finish."""
+    source = pool.share(PolicySource.read(config.model_path, embed=not pool.same_files))
+    # Parallel workers share the terminal: redrawn bars would overwrite each other, so lines.
+    lines = None if pool.info.slots == 1 else True
+    todo = list(reversed(jobs))
+    in_flight: dict[Task[RunRecord], Job] = {}
+    while todo or in_flight:
+        while todo and len(in_flight) < pool.info.slots:
+            job = todo.pop()
+            label = f"{job.experiment}-{job.controller}-seed-{job.seed}"
+            task = pool.submit(_fly_in_worker, job, config, source, progress, lines, label=label)
+            in_flight[task] = job
+        for task in pool.wait(list(in_flight)):
+            yield in_flight.pop(task), task.result()
 
 
 def run_suite(
     config: SuiteConfig,
     on_run: Callable[[RunRecord, int, int], None] | None = None,
     progress: bool = False,
+    cluster: ClusterChoice | None = None,
 ) -> SuiteResult:
     """Fly every experiment of the suite with both controllers; `on_run(record, done, total)`.
 
     `progress`: each flight shows its progress (a bar, or plain lines off a terminal).
+    `cluster`: fly on Ray instead of `config.workers` local processes (same flights).
 
     Raises `companion.errors.ModelError` if the model file is missing or fails verification
     (before any flight).
@@ -155,13 +154,17 @@ def run_suite(
     started = time.perf_counter()
     policy = load_policy(config.model_path, threads=1)
     warn_if_trained_elsewhere(policy.metadata, config.renderer)
+    adopt(policy)  # flights run in this process (one worker) use it
     try:
         jobs = _jobs(config)
         records: dict[Job, RunRecord] = {}
-        for done, (job, record) in enumerate(_run_jobs(jobs, config, policy, progress), start=1):
-            records[job] = record
-            if on_run is not None:
-                on_run(record, done, len(jobs))
+        with open_pool(config.workers, cluster) as pool:
+            announce(pool)
+            flights = _run_jobs(jobs, config, pool, progress)
+            for done, (job, record) in enumerate(flights, start=1):
+                records[job] = record
+                if on_run is not None:
+                    on_run(record, done, len(jobs))
         return SuiteResult(
             config=config,
             runs=[records[job] for job in jobs],
@@ -170,6 +173,7 @@ def run_suite(
             wall_time_s=time.perf_counter() - started,
         )
     finally:
+        release(policy)
         policy.close()
 
 
