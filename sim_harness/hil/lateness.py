@@ -7,6 +7,7 @@ the stated thresholds is marked invalid in its summary and report.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -76,3 +77,24 @@ class Lateness:
             "frames_dropped": self.frames_dropped,
             "frames_dropped_fraction": round(self.frames_dropped_fraction, 5),
         }
+
+
+class GridClock:
+    """A world loop on a fixed time grid: `advance_until` runs `_run_due(now)` (the steps whose
+    grid time has come, which move `next_step` on) and sleeps to the next one, until `until`."""
+
+    next_step: float  # monotonic time of the next grid step
+
+    def advance_until(self, until: float) -> set[tuple[int, int]]:
+        """Keep the world on the wall clock until monotonic time `until`; the drone pairs that
+        touched meanwhile."""
+        touching: set[tuple[int, int]] = set()
+        while True:
+            now = time.monotonic()
+            touching |= self._run_due(now)
+            if now >= until:
+                return touching
+            time.sleep(max(0.0, min(self.next_step, until) - time.monotonic()))
+
+    def _run_due(self, now: float) -> set[tuple[int, int]]:
+        raise NotImplementedError

@@ -7,7 +7,7 @@ import time
 from typing import TYPE_CHECKING
 
 from sim_harness.hil.camera_side import PoseBoard
-from sim_harness.hil.lateness import Lateness
+from sim_harness.hil.lateness import GridClock, Lateness
 from sim_harness.hil.px4_drone import POSE_RATE_HZ
 from sim_harness.sim.world import World
 
@@ -15,7 +15,7 @@ if TYPE_CHECKING:
     from sim_harness.hil.px4_swarm import Px4Swarm
 
 
-class WorldClock:
+class WorldClock(GridClock):
     """The world on the 100 Hz grid: every drone where its PX4 says, to the pose board."""
 
     def __init__(self, swarm: Px4Swarm, world: World, board: PoseBoard, lateness: Lateness) -> None:
@@ -24,15 +24,6 @@ class WorldClock:
         self.next_step = time.monotonic()
         self.pose_late_s = swarm.config.late_physics_s + 1.0 / POSE_RATE_HZ
         self.last = swarm._poses(self.next_step)
-
-    def advance_until(self, until: float) -> set[tuple[int, int]]:
-        touching: set[tuple[int, int]] = set()
-        while True:
-            now = time.monotonic()
-            touching |= self._run_due(now)
-            if now >= until:
-                return touching
-            time.sleep(max(0.0, min(self.next_step, until) - time.monotonic()))
 
     def _run_due(self, now: float) -> set[tuple[int, int]]:
         lat, late_s = self.lateness, self.swarm.config.late_physics_s

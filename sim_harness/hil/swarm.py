@@ -48,7 +48,7 @@ from sim_harness.hil.camera_side import (
 )
 from sim_harness.hil.drone import DroneSetup, HilDrone
 from sim_harness.hil.faults import FaultPlan, FaultRunner
-from sim_harness.hil.lateness import Lateness
+from sim_harness.hil.lateness import GridClock, Lateness
 from sim_harness.hil.px4_logic import Px4Mode
 from sim_harness.hil.world_vehicle import DEFAULT_ORIGIN, WorldVehicle, home_of, states_ned
 from sim_harness.sim import metrics
@@ -325,34 +325,24 @@ class _Abort(Exception):
     """The flight cannot start or go on (a daemon died before engaging, a timeout)."""
 
 
-class _Clock:
+class _Clock(GridClock):
     """Advances physics to the wall clock, counting lateness; poses go to the pose board."""
 
     def __init__(self, swarm: HilSwarm, world: World, board: PoseBoard, lateness: Lateness) -> None:
         self.swarm, self.world, self.board, self.lateness = swarm, world, board, lateness
         self.dt_s = swarm.config.rates.physics_dt_s
-        self.next_physics = time.monotonic()
+        self.next_step = time.monotonic()
         self.setpoints = np.zeros((swarm.scenario.n_agents, 3))
 
     def reset_counters(self) -> None:
         keep = self.lateness.max_late_fraction
         self.lateness.__init__(max_late_fraction=keep)  # type: ignore[misc]
 
-    def advance_until(self, until: float) -> set[tuple[int, int]]:
-        """Keep the world on the wall clock until monotonic time `until`."""
-        touching: set[tuple[int, int]] = set()
-        while True:
-            now = time.monotonic()
-            touching |= self._run_due(now)
-            if now >= until:
-                return touching
-            time.sleep(max(0.0, min(self.next_physics, until) - time.monotonic()))
-
     def _run_due(self, now: float) -> set[tuple[int, int]]:
         sw, lat = self.swarm, self.lateness
         touching: set[tuple[int, int]] = set()
-        while self.next_physics <= now:
-            behind = now - self.next_physics
+        while self.next_step <= now:
+            behind = now - self.next_step
             lat.physics_steps += 1
             lat.physics_late += behind > sw.config.late_physics_s
             lat.physics_max_behind_s = max(lat.physics_max_behind_s, behind)
@@ -366,7 +356,7 @@ class _Clock:
                 touching.update(self.world.contacts(s.pos_world_enu, q))
             for drone, state in zip(sw.drones, sw._states(), strict=True):
                 drone.vehicle.publish(state)
-            self.next_physics += self.dt_s
+            self.next_step += self.dt_s
         return touching
 
 

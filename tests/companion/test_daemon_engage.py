@@ -18,7 +18,7 @@ import stat
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +43,20 @@ async def until(condition: Callable[[], bool], timeout_s: float, what: str) -> N
         await asyncio.sleep(0.01)
 
 
+def fly(daemon: Any, scenario: Callable[[], Awaitable[None]]) -> None:
+    """Run the daemon on a fresh event loop while `scenario` plays; stop it afterwards."""
+
+    async def body() -> None:
+        run = asyncio.create_task(daemon.run())
+        try:
+            await scenario()
+        finally:
+            daemon.request_stop("test over")
+            await asyncio.wait_for(run, 15.0)
+
+    asyncio.run(body())
+
+
 async def control(path: str, command: str) -> dict[str, Any]:
     """`companion engage|disengage|status`, from a thread (the daemon runs on this loop)."""
     return await asyncio.to_thread(send_command, path, command)
@@ -59,47 +73,40 @@ def test_operator_mode_streams_and_only_the_pilots_switch_engages(
     px4 = rig.px4
     daemon = rig.daemon(control_socket_path, engage="operator")
 
-    async def body() -> None:
-        run = asyncio.create_task(daemon.run())
-        try:
-            # Healthy: hover setpoints stream, the vehicle stays with the pilot.
-            await until(lambda: len(px4.setpoints()) >= 20, GUARD_S, "a setpoint stream")
-            assert px4.mode is Px4Mode.POSCTL and not set_modes(px4)
-            assert all(
-                abs(s.vx_mps) + abs(s.vy_mps) + abs(s.vz_mps) < 1e-6 for s in px4.setpoints()
-            )
-            assert daemon.health.state is HealthState.STARTING
-            assert "ready" in daemon.health.reason
-            refused = await control(control_socket_path, "engage")
-            assert not refused["ok"] and "switching the vehicle to OFFBOARD" in refused["message"]
+    async def scenario() -> None:
+        # Healthy: hover setpoints stream, the vehicle stays with the pilot.
+        await until(lambda: len(px4.setpoints()) >= 20, GUARD_S, "a setpoint stream")
+        assert px4.mode is Px4Mode.POSCTL and not set_modes(px4)
+        assert all(abs(s.vx_mps) + abs(s.vy_mps) + abs(s.vz_mps) < 1e-6 for s in px4.setpoints())
+        assert daemon.health.state is HealthState.STARTING
+        assert "ready" in daemon.health.reason
+        refused = await control(control_socket_path, "engage")
+        assert not refused["ok"] and "switching the vehicle to OFFBOARD" in refused["message"]
 
-            # The pilot switches to OFFBOARD: engaged, the policy flies.
-            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
-            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
-            await until(lambda: px4.setpoints()[-1].vx_mps > 0.5, GUARD_S, "flying north")
-            status = await control(control_socket_path, "status")
-            assert status["state"] == "active" and status["offboard"] == "active"
+        # The pilot switches to OFFBOARD: engaged, the policy flies.
+        assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+        await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+        await until(lambda: px4.setpoints()[-1].vx_mps > 0.5, GUARD_S, "flying north")
+        status = await control(control_socket_path, "status")
+        assert status["state"] == "active" and status["offboard"] == "active"
 
-            # The pilot takes over; the daemon stops, then streams again; the pilot re-engages.
-            assert px4.pilot_switch_mode(Px4Mode.POSCTL).name == "ACCEPTED"
-            await until(lambda: daemon.health.state is HealthState.PILOT, GUARD_S, "PILOT")
-            await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "STARTING")
-            count = len(px4.setpoints())
-            await until(lambda: len(px4.setpoints()) >= count + 10, GUARD_S, "streaming again")
-            assert px4.mode is Px4Mode.POSCTL and not set_modes(px4)
-            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
-            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "re-engaged")
+        # The pilot takes over; the daemon stops, then streams again; the pilot re-engages.
+        assert px4.pilot_switch_mode(Px4Mode.POSCTL).name == "ACCEPTED"
+        await until(lambda: daemon.health.state is HealthState.PILOT, GUARD_S, "PILOT")
+        await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "STARTING")
+        count = len(px4.setpoints())
+        await until(lambda: len(px4.setpoints()) >= count + 10, GUARD_S, "streaming again")
+        assert px4.mode is Px4Mode.POSCTL and not set_modes(px4)
+        assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+        await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "re-engaged")
 
-            # The ground station's `companion disengage`: zero velocity, then Hold.
-            reply = await control(control_socket_path, "disengage")
-            assert reply["ok"]
-            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
-            await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
-        finally:
-            daemon.request_stop("test over")
-            await asyncio.wait_for(run, 15.0)
+        # The ground station's `companion disengage`: zero velocity, then Hold.
+        reply = await control(control_socket_path, "disengage")
+        assert reply["ok"]
+        await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
+        await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
 
-    asyncio.run(body())
+    fly(daemon, scenario)
     assert not Path(control_socket_path).exists()  # removed on exit
 
 
@@ -130,24 +137,19 @@ def test_a_restarted_daemon_does_not_take_back_px4s_offboard(
     changes = len(px4.mode_changes())
     streamed = len(px4.setpoints())
 
-    async def body() -> None:
-        run = asyncio.create_task(daemon.run())
-        try:
-            await until(
-                lambda: len(px4.setpoints()) >= streamed + 30, GUARD_S, "the new daemon's stream"
-            )
-            await asyncio.sleep(1.0)
-            assert px4.mode is Px4Mode.HOLD  # not resumed
-            assert not px4.mode_changes()[changes:]
-            reassert = set_modes(px4)
-            assert len(reassert) == 1 and reassert[0].params[1:3] == (4.0, 3.0)  # AUTO LOITER
-            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
-            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "engaged")
-        finally:
-            daemon.request_stop("test over")
-            await asyncio.wait_for(run, 15.0)
+    async def scenario() -> None:
+        await until(
+            lambda: len(px4.setpoints()) >= streamed + 30, GUARD_S, "the new daemon's stream"
+        )
+        await asyncio.sleep(1.0)
+        assert px4.mode is Px4Mode.HOLD  # not resumed
+        assert not px4.mode_changes()[changes:]
+        reassert = set_modes(px4)
+        assert len(reassert) == 1 and reassert[0].params[1:3] == (4.0, 3.0)  # AUTO LOITER
+        assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+        await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "engaged")
 
-    asyncio.run(body())
+    fly(daemon, scenario)
 
 
 def test_ground_mode_engages_only_on_companion_engage(
@@ -157,43 +159,36 @@ def test_ground_mode_engages_only_on_companion_engage(
     px4 = rig.px4
     daemon = rig.daemon(control_socket_path, engage="ground")
 
-    async def body() -> None:
-        run = asyncio.create_task(daemon.run())
-        try:
-            await until(lambda: daemon.ready, GUARD_S, "a healthy pipeline")
-            await asyncio.sleep(1.0)
-            assert not px4.setpoints() and px4.mode is Px4Mode.POSCTL
-            assert "companion engage" in daemon.health.reason
-            assert (
-                stat.S_IMODE(os.stat(control_socket_path).st_mode) == 0o660
-            )  # root + service user
-            # The operator's command line, as the ground station runs it over SSH.
-            argv = [
-                sys.executable,
-                "-m",
-                "companion.cli",
-                "engage",
-                "--socket",
-                control_socket_path,
-            ]
-            done = await asyncio.to_thread(subprocess.run, argv, capture_output=True, text=True)
-            assert done.returncode == 0, done.stderr
-            assert "engage requested" in done.stdout
-            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
-            assert px4.mode is Px4Mode.OFFBOARD
+    async def scenario() -> None:
+        await until(lambda: daemon.ready, GUARD_S, "a healthy pipeline")
+        await asyncio.sleep(1.0)
+        assert not px4.setpoints() and px4.mode is Px4Mode.POSCTL
+        assert "companion engage" in daemon.health.reason
+        assert stat.S_IMODE(os.stat(control_socket_path).st_mode) == 0o660  # root + service user
+        # The operator's command line, as the ground station runs it over SSH.
+        argv = [
+            sys.executable,
+            "-m",
+            "companion.cli",
+            "engage",
+            "--socket",
+            control_socket_path,
+        ]
+        done = await asyncio.to_thread(subprocess.run, argv, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        assert "engage requested" in done.stdout
+        await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+        assert px4.mode is Px4Mode.OFFBOARD
 
-            assert (await control(control_socket_path, "disengage"))["ok"]
-            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
-            await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
-            await asyncio.sleep(1.0)  # the engagement ended with the disengage: no new one
-            assert px4.mode is Px4Mode.HOLD and daemon.health.state is HealthState.STARTING
-            assert (await control(control_socket_path, "engage"))["ok"]
-            await until(lambda: px4.mode is Px4Mode.OFFBOARD, GUARD_S, "OFFBOARD again")
-        finally:
-            daemon.request_stop("test over")
-            await asyncio.wait_for(run, 15.0)
+        assert (await control(control_socket_path, "disengage"))["ok"]
+        await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
+        await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
+        await asyncio.sleep(1.0)  # the engagement ended with the disengage: no new one
+        assert px4.mode is Px4Mode.HOLD and daemon.health.state is HealthState.STARTING
+        assert (await control(control_socket_path, "engage"))["ok"]
+        await until(lambda: px4.mode is Px4Mode.OFFBOARD, GUARD_S, "OFFBOARD again")
 
-    asyncio.run(body())
+    fly(daemon, scenario)
 
 
 def test_no_engagement_during_a_px4_failsafe(engage_rig: Any, control_socket_path: str) -> None:
@@ -203,20 +198,15 @@ def test_no_engagement_during_a_px4_failsafe(engage_rig: Any, control_socket_pat
     px4.set_failsafe(True)
     daemon = rig.daemon(control_socket_path, engage="auto")
 
-    async def body() -> None:
-        run = asyncio.create_task(daemon.run())
-        try:
-            await until(lambda: "failsafe" in daemon.health.reason, GUARD_S, "the failsafe seen")
-            await asyncio.sleep(1.5)
-            assert not px4.setpoints() and not set_modes(px4) and px4.mode is Px4Mode.POSCTL
-            assert daemon.health.state is HealthState.STARTING
-            px4.set_failsafe(False)
-            await until(lambda: px4.mode is Px4Mode.OFFBOARD, GUARD_S, "engaged after it")
-        finally:
-            daemon.request_stop("test over")
-            await asyncio.wait_for(run, 15.0)
+    async def scenario() -> None:
+        await until(lambda: "failsafe" in daemon.health.reason, GUARD_S, "the failsafe seen")
+        await asyncio.sleep(1.5)
+        assert not px4.setpoints() and not set_modes(px4) and px4.mode is Px4Mode.POSCTL
+        assert daemon.health.state is HealthState.STARTING
+        px4.set_failsafe(False)
+        await until(lambda: px4.mode is Px4Mode.OFFBOARD, GUARD_S, "engaged after it")
 
-    asyncio.run(body())
+    fly(daemon, scenario)
 
 
 def test_a_lost_heartbeat_hovers_then_fails_safe(engage_rig: Any, control_socket_path: str) -> None:
@@ -225,25 +215,20 @@ def test_a_lost_heartbeat_hovers_then_fails_safe(engage_rig: Any, control_socket
     px4 = rig.px4
     daemon = rig.daemon(control_socket_path, engage="auto", failsafe_after_s=1.0)
 
-    async def body() -> None:
-        run = asyncio.create_task(daemon.run())
-        try:
-            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
-            seen = len(daemon.health.history)
-            lost_s = time.monotonic()
-            px4.set_heartbeat_alive(False)
-            await until(lambda: daemon.health.state is HealthState.FAILSAFE, GUARD_S, "FAILSAFE")
-            after = list(daemon.health.history)[seen:]
-            hover = next(t for t in after if t.target is HealthState.HOVER)
-            assert "heartbeat lost" in hover.reason
-            # heartbeat_timeout_s (3 s) after the last heartbeat (at most 1 s before the cut)
-            assert 2.0 - 0.1 <= hover.t_s - lost_s <= 3.0 + 1.0
-            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
-        finally:
-            daemon.request_stop("test over")
-            await asyncio.wait_for(run, 15.0)
+    async def scenario() -> None:
+        await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+        seen = len(daemon.health.history)
+        lost_s = time.monotonic()
+        px4.set_heartbeat_alive(False)
+        await until(lambda: daemon.health.state is HealthState.FAILSAFE, GUARD_S, "FAILSAFE")
+        after = list(daemon.health.history)[seen:]
+        hover = next(t for t in after if t.target is HealthState.HOVER)
+        assert "heartbeat lost" in hover.reason
+        # heartbeat_timeout_s (3 s) after the last heartbeat (at most 1 s before the cut)
+        assert 2.0 - 0.1 <= hover.t_s - lost_s <= 3.0 + 1.0
+        await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
 
-    asyncio.run(body())
+    fly(daemon, scenario)
 
 
 def test_a_pilot_switch_is_seen_before_the_next_heartbeat(
@@ -254,32 +239,25 @@ def test_a_pilot_switch_is_seen_before_the_next_heartbeat(
     px4 = rig.px4
     daemon = rig.daemon(control_socket_path, engage="auto")
 
-    async def body() -> None:
-        run = asyncio.create_task(daemon.run())
-        try:
-            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
-            autopilot = daemon._commander.autopilot if daemon._commander else None
-            assert autopilot is not None
+    async def scenario() -> None:
+        await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+        autopilot = daemon._commander.autopilot if daemon._commander else None
+        assert autopilot is not None
 
-            def heartbeat_s() -> float:
-                status = autopilot.telemetry().status
-                return -1.0 if status is None else status.t_s
+        def heartbeat_s() -> float:
+            status = autopilot.telemetry().status
+            return -1.0 if status is None else status.t_s
 
-            last = heartbeat_s()
-            await until(lambda: heartbeat_s() != last, GUARD_S, "a heartbeat")
-            seen = len(daemon.health.history)
-            switched_s = time.monotonic()  # just after a heartbeat: the next is ~1 s away
-            assert px4.pilot_switch_mode(Px4Mode.POSCTL).name == "ACCEPTED"
-            await until(lambda: daemon.health.state is HealthState.PILOT, GUARD_S, "PILOT")
-            pilot = next(
-                t for t in list(daemon.health.history)[seen:] if t.target is HealthState.PILOT
-            )
-            assert pilot.t_s - switched_s < 0.6
-        finally:
-            daemon.request_stop("test over")
-            await asyncio.wait_for(run, 15.0)
+        last = heartbeat_s()
+        await until(lambda: heartbeat_s() != last, GUARD_S, "a heartbeat")
+        seen = len(daemon.health.history)
+        switched_s = time.monotonic()  # just after a heartbeat: the next is ~1 s away
+        assert px4.pilot_switch_mode(Px4Mode.POSCTL).name == "ACCEPTED"
+        await until(lambda: daemon.health.state is HealthState.PILOT, GUARD_S, "PILOT")
+        pilot = next(t for t in list(daemon.health.history)[seen:] if t.target is HealthState.PILOT)
+        assert pilot.t_s - switched_s < 0.6
 
-    asyncio.run(body())
+    fly(daemon, scenario)
 
 
 def test_a_link_drop_longer_than_the_failsafe_ends_in_hold_until_the_pilot_engages(
@@ -292,29 +270,24 @@ def test_a_link_drop_longer_than_the_failsafe_ends_in_hold_until_the_pilot_engag
     px4 = rig.px4
     daemon = rig.daemon(control_socket_path, engage="operator", failsafe_after_s=1.0)
 
-    async def body() -> None:
-        run = asyncio.create_task(daemon.run())
-        try:
-            await until(lambda: len(px4.setpoints()) >= 10, GUARD_S, "a setpoint stream")
-            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
-            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
-            px4.set_link_alive(False)
-            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "PX4's loss failsafe")
-            await until(lambda: daemon.health.state is HealthState.FAILSAFE, GUARD_S, "FAILSAFE")
-            await asyncio.sleep(1.0)
-            px4.set_link_alive(True)
-            await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
-            await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
-            changes = len(px4.mode_changes())
-            await asyncio.sleep(3.0)  # the daemon streams again: PX4 must stay in HOLD
-            assert not px4.mode_changes()[changes:]
-            assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
-            await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "re-engaged")
-        finally:
-            daemon.request_stop("test over")
-            await asyncio.wait_for(run, 15.0)
+    async def scenario() -> None:
+        await until(lambda: len(px4.setpoints()) >= 10, GUARD_S, "a setpoint stream")
+        assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+        await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "ACTIVE")
+        px4.set_link_alive(False)
+        await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "PX4's loss failsafe")
+        await until(lambda: daemon.health.state is HealthState.FAILSAFE, GUARD_S, "FAILSAFE")
+        await asyncio.sleep(1.0)
+        px4.set_link_alive(True)
+        await until(lambda: daemon.health.state is HealthState.STARTING, GUARD_S, "waiting")
+        await until(lambda: px4.mode is Px4Mode.HOLD, GUARD_S, "HOLD")
+        changes = len(px4.mode_changes())
+        await asyncio.sleep(3.0)  # the daemon streams again: PX4 must stay in HOLD
+        assert not px4.mode_changes()[changes:]
+        assert px4.pilot_switch_mode(Px4Mode.OFFBOARD).name == "ACCEPTED"
+        await until(lambda: daemon.health.state is HealthState.ACTIVE, GUARD_S, "re-engaged")
 
-    asyncio.run(body())
+    fly(daemon, scenario)
 
 
 def test_a_vehicle_in_offboard_on_stale_setpoints_is_put_in_hold_not_adopted(
