@@ -3,6 +3,7 @@ time goes (rendering, physics, teacher, writing).
 
     python benchmarks/dataset_throughput.py [--samples 2000] [--repeats 3]
         [--renderer pybullet|raycast]   # raycast writes dataset_throughput_raycast.json
+        [--compression deflate|none]    # none writes dataset_throughput_<renderer>_stored.json
 
 Each measurement generates a fresh dataset of the paper's runs (9 drones, full-length runs) with
 `--samples` training samples and small validation/test splits, timing the whole generation
@@ -23,13 +24,15 @@ import time
 from pathlib import Path
 
 from sim_harness.dataset.generate import generate
-from sim_harness.dataset.spec import DatasetSpec
+from sim_harness.dataset.spec import COMPRESSIONS, DatasetSpec
 from sim_harness.sim.renderers import RENDERERS
 
 RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
 
 
-def measure(workers: int, samples: int, repeats: int, renderer: str) -> dict[str, object]:
+def measure(
+    workers: int, samples: int, repeats: int, renderer: str, compression: str = "deflate"
+) -> dict[str, object]:
     rates, shares = [], []
     for repeat in range(repeats):
         spec = DatasetSpec(
@@ -38,6 +41,7 @@ def measure(workers: int, samples: int, repeats: int, renderer: str) -> dict[str
             test_samples=200,
             seed=100 + repeat,
             renderer=renderer,
+            compression=compression,
         )
         with tempfile.TemporaryDirectory(prefix="bench-ds-") as tmp:
             started = time.perf_counter()
@@ -59,14 +63,17 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=2000, help="training samples per repeat")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--renderer", default="pybullet", choices=RENDERERS)
+    parser.add_argument("--compression", default="deflate", choices=COMPRESSIONS)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     suffix = "" if args.renderer == "pybullet" else f"_{args.renderer}"
+    if args.compression == "none":
+        suffix = f"_{args.renderer}_stored"
     args.out = args.out or RESULTS / f"dataset_throughput{suffix}.json"
     cores = os.cpu_count() or 1
-    rows = [measure(1, args.samples, args.repeats, args.renderer)]
+    rows = [measure(1, args.samples, args.repeats, args.renderer, args.compression)]
     if cores > 1:
-        rows.append(measure(cores, args.samples, args.repeats, args.renderer))
+        rows.append(measure(cores, args.samples, args.repeats, args.renderer, args.compression))
     result = {
         "benchmark": "dataset_throughput",
         "machine": {
@@ -76,6 +83,7 @@ def main() -> None:
         },
         "n_agents": 9,
         "renderer": args.renderer,
+        "compression": args.compression,
         "load_average_1m_after": os.getloadavg()[0],
         "samples_per_repeat": args.samples + 400,
         "repeats": args.repeats,

@@ -95,7 +95,7 @@ def _make_run(
     world, renderer, _ = _WORKER
     run = simulate_run(spec, split, run_index, world, renderer)
     started = time.perf_counter()
-    data: bytes | None = encode_run(run)
+    data: bytes | None = encode_run(run, spec.compression)
     if worker_root is not None and data is not None:
         write_run_bytes(worker_root, split, run_index, data)
         data = None

@@ -34,6 +34,7 @@ from sim_harness.sim.renderers import DEFAULT_RENDERER, require_renderer
 from sim_harness.sim.world import SimRates
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
+COMPRESSIONS: tuple[str, ...] = ("deflate", "none")  # zip deflate level 1, or stored
 TERMINATIONS: tuple[str, ...] = ("arrival", "collision", "dispersion", "ground", "time_limit")
 
 # Sample counts per split, and other overrides: "smoke" cuts runs at 2 s so that it takes seconds.
@@ -70,6 +71,7 @@ class DatasetSpec:
     shard_index: int = 0
     shard_count: int = 1
     renderer: str = DEFAULT_RENDERER  # what draws the images (sim_harness.sim.renderers)
+    compression: str = "deflate"  # run files: "deflate" (half the disk) or "none" (fastest)
 
     def __post_init__(self) -> None:
         for split in SPLITS:
@@ -90,6 +92,11 @@ class DatasetSpec:
         require_int_range("dataset.shard_index", self.shard_index, 0, self.shard_count - 1)
         SimRates(self.physics_hz, self.control_hz)  # validates divisibility
         require_renderer(self.renderer, "dataset.renderer")
+        if self.compression not in COMPRESSIONS:
+            raise ConfigError(
+                f"dataset.compression: {self.compression!r} must be one of "
+                + ", ".join(COMPRESSIONS)
+            )
 
     @property
     def rates(self) -> SimRates:
@@ -114,6 +121,7 @@ class DatasetSpec:
             d.pop(key)
         if d["renderer"] == DEFAULT_RENDERER:  # ids of datasets made before the choice existed
             d.pop("renderer")
+        d.pop("compression")  # how the runs are stored, not what they hold
         return d
 
     def content_id(self) -> str:

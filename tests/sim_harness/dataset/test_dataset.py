@@ -143,6 +143,30 @@ def test_store_reads_splits_as_arrays_and_memory_maps_the_images(smoke_dataset, 
         assert key in m
 
 
+def test_uncompressed_runs_hold_the_same_samples_and_read_the_same(
+    smoke_dataset, smoke_spec, tmp_path
+) -> None:
+    """`--compression none`: stored zip members (twice the disk, no deflate): the same dataset."""
+    import dataclasses
+    import zipfile
+
+    spec = dataclasses.replace(smoke_spec, compression="none")
+    stored = generate(tmp_path / "stored", spec, workers=1, progress=False)
+    deflated = open_dataset(smoke_dataset)
+    assert stored.manifest["id"] == deflated.manifest["id"]  # the same samples
+    assert stored.manifest["counts"] == deflated.manifest["counts"]
+    for split in SPLITS:
+        a, b = stored.split(split), deflated.split(split)
+        np.testing.assert_array_equal(a.images, b.images)
+        np.testing.assert_array_equal(a.targets, b.targets)
+    first = run_path(stored.root, "train", 0)
+    with zipfile.ZipFile(first) as zf:
+        assert {i.compress_type for i in zf.infolist()} == {zipfile.ZIP_STORED}
+    assert first.stat().st_size > 1.5 * run_path(deflated.root, "train", 0).stat().st_size
+    with pytest.raises(ConfigError, match="dataset.compression: 'lz4' must be one of deflate"):
+        dataclasses.replace(smoke_spec, compression="lz4")
+
+
 def test_splits_are_disjoint_by_run(smoke_dataset):
     ds = open_dataset(smoke_dataset)
     starts = {}
