@@ -28,6 +28,7 @@ from sim_harness.experiments.aggregate import (
 from sim_harness.experiments.suites import (
     DEFAULT_SEEDS,
     EVAL_SEED_BASE,
+    EXPERIMENTS,
     LABELS,
     SHIPPED_LOW_PASS_HZ,
     SHIPPED_MODEL_PATH,
@@ -139,6 +140,13 @@ def add_experiment_commands(sub: Any) -> None:
         f"{k} {v}" for k, v in DEFAULT_SEEDS.items()
     )
     _add_common_options(exp, Path("runs/experiments"), seeds_help + ")")
+    exp.add_argument(
+        "--experiments",
+        type=lambda text: tuple(k for k in text.split(",") if k),
+        default=None,
+        metavar="KEY,...",
+        help="fly only these of the suite's experiments (" + ", ".join(EXPERIMENTS) + ")",
+    )
     add_cluster_options(exp, shared_dir=False)
     exp.set_defaults(handler=_experiments)
 
@@ -170,6 +178,7 @@ def _run(
         rates=SimRates(),
         duration_s=args.duration,
         renderer=args.renderer,
+        experiments=getattr(args, "experiments", None),
     )
     require_writable_dir(args.out)
     n_flights = 2 * len(config.experiment_list) * len(config.seeds)
