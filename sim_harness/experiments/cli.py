@@ -134,7 +134,7 @@ def add_experiment_commands(sub: Any) -> None:
         "--suite",
         default="paper",
         choices=sorted(SUITES),
-        help="paper (common, opposing), generalization (N 3 / 12, v_max 4, no goal), bar",
+        help="paper (common, opposing), generalization (N 3 / 12, a faster flock, no goal), bar",
     )
     seeds_help = "seeds per experiment (default: " + ", ".join(
         f"{k} {v}" for k, v in DEFAULT_SEEDS.items()

@@ -28,7 +28,7 @@ def test_suites_fly_the_papers_experiments_on_evaluation_seeds() -> None:
     assert np.allclose(opposing.goals[0] - opposing.goals[1], [60.0, 0.0, 0.0])
     vmax4 = EXPERIMENTS["vmax4"].scenario_config(1000)
     assert vmax4.flocking.v_max_mps == 4.0 and vmax4.n_agents == 9
-    assert vmax4.flocking.k_mig == 3.0  # the flock flies faster, not only its cap
+    assert vmax4.flocking.k_mig == 2.0  # the flock flies faster, not only its cap
     assert set(SUITES) == {"paper", "generalization", "bar"}
 
 
@@ -136,7 +136,7 @@ def test_a_missing_model_fails_before_any_flight(tmp_path) -> None:
 
 
 def test_the_faster_flock_flies_faster_than_the_common_goal() -> None:
-    """vmax4 must test a faster flock: the teacher cruises near k_mig = 3 m/s, not near 1."""
+    """vmax4 must test a faster flock: the teacher cruises near k_mig = 2 m/s, not near 1."""
     import numpy as np
 
     from sim_harness.sim.controllers import TeacherController
@@ -151,4 +151,4 @@ def test_the_faster_flock_flies_faster_than_the_common_goal() -> None:
         cruise = log.vel_world_enu[len(log.vel_world_enu) // 2 :]  # after the start transient
         speeds[key] = float(np.linalg.norm(cruise.mean(axis=1), axis=-1).mean())
     assert speeds["common"] < 1.9
-    assert speeds["vmax4"] > 2.3 and speeds["vmax4"] > 1.5 * speeds["common"], speeds
+    assert speeds["vmax4"] > 1.6 and speeds["vmax4"] > 1.5 * speeds["common"], speeds
