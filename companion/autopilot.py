@@ -80,12 +80,6 @@ def forward_mavsdk_logs(target: logging.Logger | None = None) -> None:
     log_subscribe(on_log)
 
 
-def _vector(*components: Any) -> FloatArray:
-    vec = np.array([float(c) for c in components], dtype=np.float64)
-    vec.flags.writeable = False
-    return vec
-
-
 class MavsdkAutopilot:
     """`Autopilot` on MAVSDK 4 (`mavsdk.asyncio`). Use `async with` or connect()/close()."""
 

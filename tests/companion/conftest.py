@@ -103,13 +103,40 @@ def make_policy_file(tmp_path: Path) -> PolicyFactory:
     return make
 
 
+def textured_frames(n: int = 10) -> Any:
+    """Recorded stitched frames (n, 64, 384) uint8: textured, different every frame, with
+    vertical bars like horizon and drone edges."""
+    import numpy as np
+
+    frames = np.random.default_rng(7).integers(20, 230, (n, 64, 384), dtype=np.uint8)
+    frames[:, :, ::8] = 255
+    return frames
+
+
+@pytest.fixture
+def cameras(tmp_path: Path) -> Iterator[Any]:
+    """Six pty cameras playing `textured_frames` at 10 Hz."""
+    from sim_harness.hil.camera_emulator import CameraEmulator
+
+    with CameraEmulator(tmp_path / "dev", source=textured_frames(), rate_hz=10.0) as emulator:
+        yield emulator
+
+
+@pytest.fixture
+def px4() -> Iterator[Any]:
+    """The PX4 emulator, armed and hovering at 5 m in POSCTL; heartbeats at 20 Hz."""
+    from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+
+    config = EmulatorConfig.hovering(free_udp_port(), 5.0, heartbeat_rate_hz=20.0)
+    with AutopilotEmulator(config) as emulator:
+        yield emulator
+
+
 class EngageRig:
     """One drone's hardware around a daemon under test: six pty cameras playing textured frames
     and the pymavlink PX4 emulator, hovering at 5 m in POSCTL with 1 Hz heartbeats like PX4."""
 
     def __init__(self, folder: Path, model: Path, px4: dict[str, Any]) -> None:
-        import numpy as np
-
         from sim_harness.hil.autopilot_emulator import (
             AutopilotEmulator,
             EmulatorConfig,
@@ -118,10 +145,9 @@ class EngageRig:
         from sim_harness.hil.camera_emulator import CameraEmulator
         from sim_harness.hil.px4_logic import Px4LogicConfig
 
-        frames = np.random.default_rng(7).integers(20, 230, (10, 64, 384), dtype=np.uint8)
-        frames[:, :, ::8] = 255
         self.folder, self.model = folder, model
-        self.cameras = CameraEmulator(folder / "dev", source=frames, rate_hz=10.0).start()
+        self.cameras = CameraEmulator(folder / "dev", source=textured_frames(), rate_hz=10.0)
+        self.cameras.start()
         config = EmulatorConfig.hovering(
             free_udp_port(), 5.0, heartbeat_rate_hz=1.0, px4=Px4LogicConfig(**px4)
         )

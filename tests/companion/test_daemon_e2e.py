@@ -59,20 +59,6 @@ def free_tcp_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def recording(n: int = 10) -> np.ndarray:
-    """Recorded stitched frames (N, 64, 384) uint8: textured, different every frame."""
-    rng = np.random.default_rng(7)
-    frames = rng.integers(20, 230, (n, 64, 384), dtype=np.uint8)
-    frames[:, :, ::8] = 255  # vertical bars, like horizon and drone edges
-    return frames
-
-
-@pytest.fixture
-def cameras(tmp_path: Path) -> Iterator[CameraEmulator]:
-    with CameraEmulator(tmp_path / "dev", source=recording(), rate_hz=10.0) as emulator:
-        yield emulator
-
-
 @pytest.fixture
 def px4() -> Iterator[AutopilotEmulator]:
     """PX4 armed and hovering at 5 m in POSCTL, facing east; heartbeats at 20 Hz."""

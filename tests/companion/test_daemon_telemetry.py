@@ -14,7 +14,7 @@ import json
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,7 @@ from companion.camera.protocol import MAGIC
 from companion.config import config_from_dict
 from companion.daemon import Daemon
 from companion.flight_log import TOPIC_CAMERAS, TOPIC_HEALTH, LogReader, summarize_log
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.camera_emulator import CameraEmulator
 
 GUARD_S = 30.0
@@ -45,20 +45,6 @@ def garbage(blocks: int) -> bytes:
     body = np.random.default_rng(5).integers(0, 256, (blocks, 40), dtype=np.uint8)
     body[body == 0xA5] = 0
     return b"".join(MAGIC + row.tobytes() for row in body)
-
-
-@pytest.fixture
-def cameras(tmp_path: Path) -> Iterator[CameraEmulator]:
-    frames = np.random.default_rng(7).integers(20, 230, (10, 64, 384), dtype=np.uint8)
-    with CameraEmulator(tmp_path / "dev", source=frames, rate_hz=10.0) as emulator:
-        yield emulator
-
-
-@pytest.fixture
-def px4() -> Iterator[AutopilotEmulator]:
-    config = EmulatorConfig.hovering(free_udp_port(), 5.0, heartbeat_rate_hz=20.0)
-    with AutopilotEmulator(config) as emulator:
-        yield emulator
 
 
 def make_daemon(

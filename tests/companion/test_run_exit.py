@@ -19,27 +19,20 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 
 from companion.flight_log import summarize_log
 from companion.model_file import base_metadata, save_model, sidecar_path, torchscript_calls
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.camera_emulator import CameraEmulator
 from sim_harness.hil.drone import free_tcp_port, toml_text
 from sim_harness.hil.px4_logic import Px4Mode
 
 REPO = Path(__file__).resolve().parents[2]
 GUARD_S = 60.0  # liveness bound on a loaded machine; met in seconds normally
-
-
-def recording() -> np.ndarray:
-    """Ten textured frames, different every frame."""
-    return np.random.default_rng(7).integers(20, 230, (10, 64, 384), dtype=np.uint8)
 
 
 def hanging_model(path: Path, answered_calls: int) -> Path:
@@ -64,20 +57,6 @@ def hanging_model(path: Path, answered_calls: int) -> Path:
         module = torch.jit.script(HangLater(answered_calls).eval())
     save_model(module, base_metadata(), path)
     return path
-
-
-@pytest.fixture
-def cameras(tmp_path: Path) -> Iterator[CameraEmulator]:
-    with CameraEmulator(tmp_path / "dev", source=recording(), rate_hz=10.0) as emulator:
-        yield emulator
-
-
-@pytest.fixture
-def px4() -> Iterator[AutopilotEmulator]:
-    """PX4 armed and hovering at 5 m in POSCTL; heartbeats at 20 Hz."""
-    config = EmulatorConfig.hovering(free_udp_port(), 5.0, heartbeat_rate_hz=20.0)
-    with AutopilotEmulator(config) as emulator:
-        yield emulator
 
 
 def write_config(
