@@ -6,11 +6,8 @@ One asyncio program (`Daemon.run`), tasks under a TaskGroup:
 - the Zenoh telemetry publisher (5 Hz, latest values only);
 - an attitude sampler (50 Hz) that keeps the autopilot's recent attitudes, so each policy output
   is rotated with the attitude at its image's capture time;
-- the control loop: a tick starts as soon as all six cameras delivered a new frame, so each
-  decision acts on the newest image (image age: the last tile's transfer, not up to a period of
-  waiting), and at the latest one period after the previous tick, so the setpoint stream never
-  falls below `rate_hz` (`[daemon] tick_on_frames = false`: a fixed grid `t0 + k * period`,
-  late ticks skipped, never drifting). One tick:
+- the control loop: a tick on each fresh six-frame set, `rate_hz` the floor (or a fixed grid;
+  `companion.daemon_loop`). One tick:
 
   1. rig snapshot; if all six faces are fresh and it is a new image, start the inference (on the
      policy's worker thread) and wait for it at most `inference_budget_s` (a slower result is used
@@ -47,7 +44,6 @@ from typing import Any, TypeVar
 from companion import daemon_reports as reports
 from companion import frames
 from companion.autopilot_types import Autopilot, OffboardState
-from companion.camera.fresh_set import FreshSetWaiter
 from companion.camera.rig import Rig, RigImage, RigSnapshot
 from companion.camera.serial_link import SerialCameraLink, links_from_config, run_links
 from companion.camera.slot import FrameSource
@@ -56,6 +52,7 @@ from companion.control import ControlLaw, ControlOutput
 from companion.control_channel import ControlChannel, ControlError
 from companion.daemon_commands import Commander
 from companion.daemon_engage import Engagement
+from companion.daemon_loop import fixed_rate, frame_locked
 from companion.daemon_outputs import Outputs, TickTimes
 from companion.errors import CompanionError, ModelError
 from companion.geo import MigrationFromHome
@@ -154,7 +151,6 @@ class Daemon:
             events=self.outputs.event,
         )
         self._control_channel: ControlChannel | None = None
-        self._engage_waiting = ""
         if d.control_socket:
             self._control_channel = ControlChannel(d.control_socket, self._on_control)
         self.ticks = 0
@@ -306,39 +302,18 @@ class Daemon:
 
     async def _loop(self) -> None:
         d = self.config.daemon
-        period_s = d.period_s
         log.info(
             "control loop: %s, at least %g Hz",
             "ticks on each fresh six-frame set" if d.tick_on_frames else "fixed rate",
             d.rate_hz,
         )
-        if not d.tick_on_frames:
-            await self._fixed_rate_loop(period_s)
-            return
-        waiter = FreshSetWaiter(self._rig, self._stop, self._clock)
-        deadline_s = self._clock()
-        while not self._stop.is_set():
-            now_s = self._clock()
-            seen = self._rig.latest_seqs()
-            await self._tick(now_s, max(0.0, now_s - deadline_s))
-            deadline_s = now_s + period_s  # the floor: never a period without a tick
-            await asyncio.sleep(0)  # the links and the autopilot run between ticks, always
-            await waiter.wait(seen, deadline_s)
+        if d.tick_on_frames:
+            await frame_locked(self._tick, self._rig, self._stop, self._clock, d.period_s)
+        else:
+            await fixed_rate(self._tick, self._stop, self._clock, d.period_s, self._skipped)
 
-    async def _fixed_rate_loop(self, period_s: float) -> None:
-        """Ticks on the grid `t0 + k * period` (late ticks skipped, never drifting)."""
-        next_s = self._clock()
-        while not self._stop.is_set():
-            now_s = self._clock()
-            await self._tick(now_s, now_s - next_s)
-            next_s += period_s
-            behind_s = self._clock() - next_s
-            if behind_s >= 0.0:  # overran: skip the missed deadlines, stay on the grid
-                missed = math.floor(behind_s / period_s) + 1
-                next_s += missed * period_s
-                self.skipped_ticks += missed
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._stop.wait(), max(0.0, next_s - self._clock()))
+    def _skipped(self, missed: int) -> None:
+        self.skipped_ticks += missed
 
     async def _tick(self, now_s: float, late_s: float) -> None:
         commander, policy = self._commander, self._policy
@@ -365,15 +340,8 @@ class Daemon:
         heartbeat = self.engagement.heartbeat_problem(telemetry, now_s)
         if heartbeat and self.health.state is not HealthState.STARTING:
             control, output_ok, problem = None, False, heartbeat  # mode unknown: hover, failsafe
-        if self.engagement.disengage_requested:
-            self.engagement.disengage_requested = False
-            if await commander.disengage(self._law.hover(yaw_enu, "disengage")):
-                self.outputs.event("disengaged", "info", "operator: vehicle switched to HOLD")
-        gate = self.engagement.gate(telemetry, now_s, commander.may_engage(now_s))
-        if gate.waiting != self._engage_waiting and self.health.state is HealthState.STARTING:
-            self._engage_waiting = gate.waiting  # the log says why the drone did not engage
-            if gate.waiting and "OFFBOARD request" not in gate.waiting:
-                self.outputs.event("not engaging", "info", gate.waiting)
+        hover = lambda: self._law.hover(yaw_enu, "disengage")  # noqa: E731
+        gate = await self.engagement.before_step(commander, hover, telemetry, now_s, self.health)
         decision = self.health.step(
             HealthInputs(
                 now_s=now_s,
@@ -387,11 +355,7 @@ class Daemon:
                 reengage_allowed=self.engagement.reengage_allowed and commander.idle,
             )
         )
-        if decision.transition is not None and decision.state is not HealthState.ACTIVE:
-            if decision.state in (HealthState.PILOT, HealthState.FAILSAFE):
-                self.engagement.ended()
-            elif decision.state is HealthState.STARTING:
-                commander.rearm()
+        self.engagement.after_step(decision, commander)
         command, sent = await self._act(decision, control, yaw_enu)
         times = TickTimes(now_s, late_s, self._clock(), new_image, fresh)
         if collected is not None:

@@ -25,7 +25,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from companion.autopilot_types import AutopilotTelemetry, OffboardState
-from companion.health import HealthState
+from companion.control import ControlOutput
+from companion.daemon_commands import Commander
+from companion.health import HealthDecision, HealthMonitor, HealthState
 
 COMMANDING = (HealthState.ACTIVE, HealthState.HOVER)
 
@@ -56,6 +58,7 @@ class Engagement:
         self._events = events
         self.requested = False  # "ground": `companion engage` arrived and still stands
         self.disengage_requested = False
+        self._waiting = ""  # the last "not engaging" reason logged
 
     @property
     def reengage_allowed(self) -> bool:
@@ -107,6 +110,36 @@ class Engagement:
             if not (armed is not None and armed.value and in_air is not None and in_air.value):
                 return "the vehicle is not armed and in the air"
         return ""
+
+    async def before_step(
+        self,
+        commander: Commander,
+        hover: Callable[[], ControlOutput],
+        telemetry: AutopilotTelemetry,
+        now_s: float,
+        health: HealthMonitor,
+    ) -> EngageGate:
+        """Each tick before the health step: carry out a `companion disengage` (zero velocity
+        `hover()`, then Hold), and this tick's gate; a new reason for not engaging is logged."""
+        if self.disengage_requested:
+            self.disengage_requested = False
+            if await commander.disengage(hover()):
+                self._events("disengaged", "info", "operator: vehicle switched to HOLD")
+        gate = self.gate(telemetry, now_s, commander.may_engage(now_s))
+        if gate.waiting != self._waiting and health.state is HealthState.STARTING:
+            self._waiting = gate.waiting  # the log says why the drone did not engage
+            if gate.waiting and "OFFBOARD request" not in gate.waiting:
+                self._events("not engaging", "info", gate.waiting)
+        return gate
+
+    def after_step(self, decision: HealthDecision, commander: Commander) -> None:
+        """After the health step: an ended engagement needs a new one; a new one may fail safe."""
+        if decision.transition is None or decision.state is HealthState.ACTIVE:
+            return
+        if decision.state in (HealthState.PILOT, HealthState.FAILSAFE):
+            self.ended()
+        elif decision.state is HealthState.STARTING:
+            commander.rearm()
 
     def ended(self) -> None:
         """The engagement ended (takeover, failsafe, disengage): "ground" needs a new engage."""
