@@ -119,13 +119,9 @@ class Commander:
             self._engage_task = None
 
     async def disengage(self, hover: ControlOutput) -> bool:
-        """Stop commanding at the operator's request: zero velocity, then Hold (or stop the
-        READY stream without a mode change). True if the vehicle was left commanded."""
-        state = self.autopilot.offboard_state
-        if state is OffboardState.READY:
-            await self.guarded("stop stream", self.autopilot.stop_offboard())
-            return False
-        if state is not OffboardState.ACTIVE:
+        """Stop commanding at the operator's request: zero velocity, then Hold. True if the
+        vehicle was being commanded."""
+        if self.autopilot.offboard_state is not OffboardState.ACTIVE:
             return False
         await self.safe_stop(hover)
         return True

@@ -154,7 +154,7 @@ class Engagement:
             return {"ok": True, "message": reason or state.value, **base}
         if command == "disengage":
             self.requested = False
-            if state in COMMANDING or offboard is OffboardState.READY:
+            if state in COMMANDING:
                 self.disengage_requested = True
                 self._events("disengage", "info", "operator: companion disengage")
                 return {"ok": True, "message": "disengaging: zero velocity, then Hold", **base}
