@@ -44,7 +44,6 @@ class ControlChannel:
         self.path = Path(path)
         self._handler = handler
         self._server: asyncio.Server | None = None
-        self.commands = 0
 
     async def open(self) -> None:
         """Listen; raises `ControlError` if the path is unusable or another daemon listens."""
@@ -82,7 +81,6 @@ class ControlChannel:
                     + ", ".join(COMMANDS),
                 }
             else:
-                self.commands += 1
                 reply = self._handler(command)
             writer.write(json.dumps(reply).encode() + b"\n")
             await writer.drain()

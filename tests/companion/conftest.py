@@ -132,6 +132,49 @@ def px4() -> Iterator[Any]:
         yield emulator
 
 
+def drone_document(
+    cameras: Any,
+    px4: Any,
+    model: Path,
+    folder: Path,
+    telemetry: dict[str, Any],
+    daemon: dict[str, Any],
+) -> dict[str, Any]:
+    """The config document of a test drone wired to pty cameras and the PX4 emulator (flight
+    logs under `folder`), with these `[telemetry]` and `[daemon]` sections."""
+    return {
+        "drone": {"id": "d1"},
+        "cameras": {"faces": cameras.faces_config()},
+        "policy": {"model_path": str(model)},
+        "autopilot": {
+            "url": f"udpin://127.0.0.1:{px4.config.client_port}",
+            "discovery_timeout_s": 5.0,
+            "health_timeout_s": 5.0,
+            "offboard_prestream_s": 0.05,
+        },
+        "recorder": {"directory": str(folder / "flights")},
+        "telemetry": telemetry,
+        "daemon": daemon,
+    }
+
+
+def drone_daemon(*document_args: Any) -> Any:
+    """A `Daemon` for `drone_document(*document_args)`, on the test's clock, no signal handlers."""
+    import time
+
+    from companion.config import config_from_dict
+    from companion.daemon import Daemon
+
+    config = config_from_dict(drone_document(*document_args))
+    return Daemon(config, handle_signals=False, clock=time.monotonic)
+
+
+@pytest.fixture
+def make_drone_daemon() -> Callable[..., Any]:
+    """`drone_daemon` for test modules (which cannot import this file)."""
+    return drone_daemon
+
+
 class EngageRig:
     """One drone's hardware around a daemon under test: six pty cameras playing textured frames
     and the pymavlink PX4 emulator, hovering at 5 m in POSCTL with 1 Hz heartbeats like PX4."""
@@ -155,26 +198,10 @@ class EngageRig:
 
     def daemon(self, control_socket: str, **daemon: Any) -> Any:
         """A `Daemon` wired to this rig (telemetry off; the test's clock)."""
-        import time
-
-        from companion.config import config_from_dict
-        from companion.daemon import Daemon
-
-        document = {
-            "drone": {"id": "d1"},
-            "cameras": {"faces": self.cameras.faces_config()},
-            "policy": {"model_path": str(self.model)},
-            "autopilot": {
-                "url": f"udpin://127.0.0.1:{self.px4.config.client_port}",
-                "discovery_timeout_s": 5.0,
-                "health_timeout_s": 5.0,
-                "offboard_prestream_s": 0.05,
-            },
-            "recorder": {"directory": str(self.folder / "flights")},
-            "telemetry": {"enabled": False},
-            "daemon": {"failsafe_after_s": 5.0, "control_socket": control_socket, **daemon},
-        }
-        return Daemon(config_from_dict(document), handle_signals=False, clock=time.monotonic)
+        daemon_section = {"failsafe_after_s": 5.0, "control_socket": control_socket, **daemon}
+        return drone_daemon(
+            self.cameras, self.px4, self.model, self.folder, {"enabled": False}, daemon_section
+        )
 
     def close(self) -> None:
         self.px4.stop()

@@ -25,8 +25,6 @@ import zenoh
 from companion import cli
 from companion.camera.layout import FACE_NAMES
 from companion.camera.protocol import MAGIC
-from companion.config import config_from_dict
-from companion.daemon import Daemon
 from companion.flight_log import TOPIC_CAMERAS, TOPIC_HEALTH, LogReader, summarize_log
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.camera_emulator import CameraEmulator
@@ -45,30 +43,6 @@ def garbage(blocks: int) -> bytes:
     body = np.random.default_rng(5).integers(0, 256, (blocks, 40), dtype=np.uint8)
     body[body == 0xA5] = 0
     return b"".join(MAGIC + row.tobytes() for row in body)
-
-
-def make_daemon(
-    tmp_path: Path,
-    cameras: CameraEmulator,
-    px4: AutopilotEmulator,
-    model: Path,
-    telemetry: dict[str, Any],
-) -> Daemon:
-    document = {
-        "drone": {"id": "d1"},
-        "cameras": {"faces": cameras.faces_config()},
-        "policy": {"model_path": str(model)},
-        "autopilot": {
-            "url": f"udpin://127.0.0.1:{px4.config.client_port}",
-            "discovery_timeout_s": 5.0,
-            "health_timeout_s": 5.0,
-            "offboard_prestream_s": 0.05,
-        },
-        "recorder": {"directory": str(tmp_path / "flights")},
-        "telemetry": telemetry,
-        "daemon": {"failsafe_after_s": 5.0},
-    }
-    return Daemon(config_from_dict(document), handle_signals=False, clock=time.monotonic)
 
 
 class Monitor:
@@ -112,11 +86,16 @@ def flight_log(tmp_path: Path) -> Path:
 
 
 def test_camera_errors_battery_and_gps_reach_the_ground_and_the_log(
-    tmp_path: Path, cameras: CameraEmulator, px4: AutopilotEmulator, make_policy_file: Any
+    tmp_path: Path,
+    cameras: CameraEmulator,
+    px4: AutopilotEmulator,
+    make_policy_file: Any,
+    make_drone_daemon: Any,
 ) -> None:
     port = free_tcp_port()
     listen = {"listen_endpoints": [f"tcp/127.0.0.1:{port}"]}
-    daemon = make_daemon(tmp_path, cameras, px4, make_policy_file("constant"), listen)
+    model = make_policy_file("constant")
+    daemon = make_drone_daemon(cameras, px4, model, tmp_path, listen, {"failsafe_after_s": 5.0})
     monitor = Monitor(port)
     junk = garbage(12)
 
@@ -177,7 +156,11 @@ def test_camera_errors_battery_and_gps_reach_the_ground_and_the_log(
 
 
 def test_telemetry_that_cannot_listen_does_not_ground_the_drone(
-    tmp_path: Path, cameras: CameraEmulator, px4: AutopilotEmulator, make_policy_file: Any
+    tmp_path: Path,
+    cameras: CameraEmulator,
+    px4: AutopilotEmulator,
+    make_policy_file: Any,
+    make_drone_daemon: Any,
 ) -> None:
     port = free_tcp_port()
     holder = socket.socket()  # another program holds the telemetry port at start-up
@@ -188,7 +171,8 @@ def test_telemetry_that_cannot_listen_does_not_ground_the_drone(
         "retry_min_s": 0.2,
         "retry_max_s": 0.5,
     }
-    daemon = make_daemon(tmp_path, cameras, px4, make_policy_file("constant"), telemetry)
+    model = make_policy_file("constant")
+    daemon = make_drone_daemon(cameras, px4, model, tmp_path, telemetry, {"failsafe_after_s": 5.0})
 
     async def body() -> None:
         run = asyncio.create_task(daemon.run())
