@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from sim_harness.experiments import stats as suite_stats
+from sim_harness.experiments.bar import BarCheck, bar_checks
 from sim_harness.experiments.gradcam_strip import save_gradcam_strip
 from sim_harness.experiments.runner import RunRecord, SuiteResult
 from sim_harness.experiments.suites import (
@@ -55,8 +56,10 @@ def _aggregate_table(table: dict[str, dict[str, Any]]) -> list[str]:
         "no collision (< 1 m)",
         "physical contacts",
         "lowest d_min",
+        "median d_min",
         "highest d_max",
         "mean order",
+        "centroid progress",
         "arrived",
         "median arrival",
         "CNN / teacher",
@@ -74,8 +77,10 @@ def _aggregate_table(table: dict[str, dict[str, Any]]) -> list[str]:
                 f"{row['collision_free_runs']}/{n}",
                 f"{row['contact_runs']}/{n}",
                 _num(row["d_min_lowest_m"], unit=" m"),
+                _num(row.get("d_min_median_m"), unit=" m"),
                 _num(row["d_max_highest_m"], unit=" m"),
                 _num(row["order_mean"]),
+                _num(row.get("centroid_progress_median_m"), 1, " m"),
                 f"{row['arrived_runs']}/{n}",
                 _num(row["arrival_median_s"], 1, " s"),
                 _num(ratio) + ("x" if ratio is not None else ""),
@@ -87,7 +92,17 @@ def _aggregate_table(table: dict[str, dict[str, Any]]) -> list[str]:
 
 
 def _runs_table(records: list[RunRecord]) -> list[str]:
-    header = ["seed", "end", "arrival", "d_min", "d_max", "mean order", "contacts", "split"]
+    header = [
+        "seed",
+        "end",
+        "arrival",
+        "d_min",
+        "d_max",
+        "mean order",
+        "centroid progress",
+        "contacts",
+        "split",
+    ]
     rows = [
         [
             str(r.seed),
@@ -96,6 +111,7 @@ def _runs_table(records: list[RunRecord]) -> list[str]:
             _num(r.summary["d_min_m"], unit=" m"),
             _num(r.summary["d_max_m"], unit=" m"),
             _num(r.summary["order_mean"]),
+            _num(r.summary.get("centroid_progress_m"), 1, " m"),
             str(r.summary["physical_contacts"]),
             "yes" if r.summary["flock_split"] else "no",
         ]
@@ -252,15 +268,23 @@ def write_report(
         "evaluation seeds >= 1000, never used for training)",
         f"- CNN low-pass filter: {'off' if cutoff is None else f'{cutoff:g} Hz cut-off'}; "
         f"physics {cfg.rates.physics_hz} Hz, control {cfg.rates.control_hz} Hz"
-        + ("" if cfg.duration_s is None else f"; every flight cut at {cfg.duration_s:g} s"),
+        + ("" if cfg.duration_s is None else f"; every flight cut at {cfg.duration_s:g} s")
+        + (
+            f"; **sensitivity check: seeded noise of up to {cfg.output_jitter_mps:g} m/s added "
+            "to every CNN output component**"
+            if cfg.output_jitter_mps
+            else ""
+        ),
         f"- {len(result.runs)} flights in {result.wall_time_s:.0f} s of wall time",
         "",
         "Collision: a pair under 1 m at any control step. Split: d_max >= r_max at some step. "
         "Stalled: no arrival by the time limit (only for experiments with a common goal). "
-        "Arrival ratio: median CNN arrival time over the teacher's, same seeds.",
+        "Arrival ratio: median CNN arrival time over the teacher's, same seeds. Centroid "
+        "progress: how far the whole flock's centroid moved towards the goal that ends the run "
+        "(the majority's, with opposing goals); median over runs in the tables.",
         "",
     ]
-    checks = suite_stats.bar_checks(result)
+    checks = bar_checks(result)
     if checks:
         passed = all(c.passed for c in checks)
         verdict = "met" if passed else "NOT met"
@@ -303,7 +327,7 @@ def _write_json(
     result: SuiteResult,
     path: Path,
     tables: dict[str, Any],
-    checks: list[suite_stats.BarCheck],
+    checks: list[BarCheck],
 ) -> None:
     cfg = result.config
     data = {
@@ -313,6 +337,7 @@ def _write_json(
         "low_pass_cutoff_hz": cfg.low_pass_cutoff_hz,
         "renderer": cfg.renderer,
         "duration_s": cfg.duration_s,
+        "output_jitter_mps": cfg.output_jitter_mps,
         "rates": {"physics_hz": cfg.rates.physics_hz, "control_hz": cfg.rates.control_hz},
         "wall_time_s": result.wall_time_s,
         "tables": tables,

@@ -85,7 +85,9 @@ def _controller(job: Job, config: SuiteConfig, policy: Policy | None) -> Control
         return TeacherController(flocking)
     if policy is None:
         raise RuntimeError("a CNN flight needs the policy")
-    law = VisionControlConfig.from_flocking(flocking, config.low_pass_cutoff_hz)
+    law = VisionControlConfig.from_flocking(
+        flocking, config.low_pass_cutoff_hz, config.output_jitter_mps, job.seed
+    )
     return VisionController(policy, law, config.rates.control_dt_s)
 
 

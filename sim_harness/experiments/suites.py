@@ -15,7 +15,8 @@ median arrival 15.0 s against 29.3 s) and leaves 2 m/s under the cap for separat
 The separation gain is the paper's, so a faster flock compresses while it accelerates: the teacher
 itself keeps every pair >= 1 m in 8 of those 10 seeds (lowest 0.82 m; at k_mig 3, 7 of 10, lowest
 0.76 m): judge the CNN against the teacher on the same seed here.
-- `bar`: the acceptance bar: common goal and opposing goals, N = 9, 10 seeds by default.
+- `bar`: the acceptance bar (`sim_harness.experiments.bar`): every experiment above, 20 seeds by
+  default.
 
 Seeds. Evaluation scenarios use seeds >= `EVAL_SEED_BASE` (1000): seed k of a suite is
 `seed_base + k`. They are never used for training: the dataset draws every run from
@@ -97,9 +98,9 @@ EXPERIMENTS: dict[str, Experiment] = {
 SUITES: dict[str, tuple[str, ...]] = {
     "paper": ("common", "opposing"),
     "generalization": ("n3", "n12", "common", "vmax4", "self-propelled"),
-    "bar": ("common", "opposing"),
+    "bar": ("common", "opposing", "n3", "n12", "vmax4", "self-propelled"),
 }
-DEFAULT_SEEDS = {"paper": 5, "generalization": 5, "bar": 10}
+DEFAULT_SEEDS = {"paper": 5, "generalization": 5, "bar": 20}
 
 
 @dataclass(frozen=True)
@@ -116,6 +117,8 @@ class SuiteConfig:
     duration_s: float | None = None
     experiments: tuple[str, ...] | None = None  # None: the suite's experiments
     renderer: str = DEFAULT_RENDERER  # what draws the CNN's images (sim_harness.sim.renderers)
+    # a sensitivity check: seeded uniform noise of this size (m/s) on every CNN output component
+    output_jitter_mps: float = 0.0
 
     def __post_init__(self) -> None:
         if self.suite not in SUITES:
@@ -136,6 +139,7 @@ class SuiteConfig:
             )
         require_int_range("experiments.workers", self.workers, 1, 256)
         require_renderer(self.renderer, "experiments.renderer")
+        require_range("experiments.output_jitter_mps", self.output_jitter_mps, 0.0, 1.0)
         if self.duration_s is not None:
             require_range(
                 "experiments.duration_s", self.duration_s, 0.0, 86_400.0, low_inclusive=False

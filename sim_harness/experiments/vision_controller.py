@@ -48,8 +48,13 @@ class VisionControlConfig:
     k_mig: float = 1.0  # migration speed towards the agent's own migration point
     v_max_mps: float = 2.0  # cap of the final command
     low_pass_cutoff_hz: float | None = None  # first-order low-pass on the CNN output; None: off
+    # Sensitivity checks only: add uniform noise in [-j, j] m/s to each CNN output component,
+    # seeded per run (`jitter_seed`), to see whether a flight's verdict survives a tiny change
+    output_jitter_mps: float = 0.0
+    jitter_seed: int = 0
 
     def __post_init__(self) -> None:
+        require_range("vision.output_jitter_mps", self.output_jitter_mps, 0.0, 1.0)
         require_range("vision.k_mig", self.k_mig, 0.0, 20.0)
         require_range("vision.v_max_mps", self.v_max_mps, 0.0, 20.0, low_inclusive=False)
         if self.low_pass_cutoff_hz is not None:
@@ -63,10 +68,16 @@ class VisionControlConfig:
 
     @classmethod
     def from_flocking(
-        cls, params: FlockingParams, low_pass_cutoff_hz: float | None = None
+        cls,
+        params: FlockingParams,
+        low_pass_cutoff_hz: float | None = None,
+        output_jitter_mps: float = 0.0,
+        jitter_seed: int = 0,
     ) -> VisionControlConfig:
         """The same migration gain and speed cap as the teacher's flocking parameters."""
-        return cls(params.k_mig, params.v_max_mps, low_pass_cutoff_hz)
+        return cls(
+            params.k_mig, params.v_max_mps, low_pass_cutoff_hz, output_jitter_mps, jitter_seed
+        )
 
 
 class VisionController:
@@ -91,6 +102,7 @@ class VisionController:
         self.filter = LowPassFilter(config.low_pass_cutoff_hz, control_dt_s)
         self.last_vel_body_flu: FloatArray | None = None  # (N, 3) the CNN's latest output
         self._inference_s = 0.0
+        self._jitter = np.random.default_rng(config.jitter_seed)
 
     def reset(self, n_agents: int) -> None:
         """Start a new run: filter state from rest, timing from zero."""
@@ -98,6 +110,7 @@ class VisionController:
         self.filter.reset()
         self.last_vel_body_flu = None
         self._inference_s = 0.0
+        self._jitter = np.random.default_rng(self.config.jitter_seed)
 
     def stage_time_s(self) -> dict[str, float]:
         """Wall time spent in the CNN since `reset` (the rollout adds it to the flight's log)."""
@@ -117,6 +130,9 @@ class VisionController:
         self._inference_s += time.perf_counter() - start
         if vel_body.shape != (n, 3):
             raise ControllerError(f"the policy returned shape {vel_body.shape}; expected ({n}, 3)")
+        if self.config.output_jitter_mps > 0.0:
+            j = self.config.output_jitter_mps
+            vel_body = vel_body + self._jitter.uniform(-j, j, size=vel_body.shape)
         self.last_vel_body_flu = vel_body
         vel_filtered = self.filter.step(vel_body)
         return compose_velocity(

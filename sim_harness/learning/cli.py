@@ -18,6 +18,7 @@ from typing import Any
 from companion.errors import ConfigError
 from sim_harness.dataset.cli import command_line
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
+from sim_harness.learning.symmetry_views import GROUPS
 from sim_harness.sim.out_dir import require_writable_dir
 
 SPLITS = ("train", "val", "test")
@@ -67,6 +68,13 @@ def add_learning_commands(sub: Any) -> None:
         metavar="PATH",
         help="fine-tune: start from these weights (checkpoint or policy file)",
     )
+    t.add_argument(
+        "--augment",
+        choices=tuple(GROUPS),
+        default="none",
+        help="show each sample in a random view of this symmetry group of the camera rig "
+        "(quarter turns c4, mirror, both d4), its label transformed to match (default none)",
+    )
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(handler=_train)
 
@@ -84,6 +92,13 @@ def add_learning_commands(sub: Any) -> None:
     x.add_argument("--dataset", type=Path, required=True, help="the dataset it was trained on")
     x.add_argument("--out", type=Path, default=SHIPPED_MODEL_PATH, help="policy file (.pt)")
     x.add_argument("--eval-out", type=Path, default=None, help="default runs/eval/<out>-test")
+    x.add_argument(
+        "--symmetry",
+        choices=tuple(GROUPS),
+        default="none",
+        help="average the network over the rig's symmetric views of each image (one batch of "
+        "2, 4 or 8 per image; exactly equivariant, a body-frame bias cancels; default none)",
+    )
     x.set_defaults(handler=_export)
 
     g = sub.add_parser("gradcam", help="Grad-CAM saliency PNGs for dataset samples")
@@ -119,6 +134,7 @@ def _train(args: argparse.Namespace) -> int:
         resume=args.resume,
         extra_train=tuple(args.extra_train),
         init_from=args.init_from,
+        augment=args.augment,
         progress=not args.no_progress,
         command=command_line(),
     )
@@ -190,7 +206,7 @@ def _export(args: argparse.Namespace) -> int:
         )
     run_dir = args.checkpoint if args.checkpoint.is_dir() else args.checkpoint.parent
     last = load_checkpoint(run_dir / LAST_NAME) if (run_dir / LAST_NAME).exists() else state
-    scripted = to_torchscript(model)
+    scripted = to_torchscript(model, symmetry=args.symmetry)
     test = dataset.split("test")
     report = evaluate_split(scripted, test, eval_out, title=f"{args.out.name} on test")
     training = {
@@ -211,6 +227,7 @@ def _export(args: argparse.Namespace) -> int:
         training,
         scripted=scripted,
         check_images_u8=torch.from_numpy(test.images[: min(16, test.n_samples)].copy()),
+        symmetry=args.symmetry,
     )
     print(f"test {_describe_metrics(report['metrics'])}")
     print(

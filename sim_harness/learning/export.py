@@ -58,6 +58,7 @@ from sim_harness.learning.model import (
     example_input,
     to_channels_last,
 )
+from sim_harness.learning.symmetry import SymmetricPolicy, require_group
 
 WEIGHTS_SUFFIX = ".weights.pt"
 EXPORT_TOLERANCE_MPS = 1e-4  # an export whose graph differs more than this from eager is refused
@@ -75,16 +76,22 @@ class ExportResult:
     reference: Reference
 
 
-def to_torchscript(model: DroNet, graph: str = "inference") -> torch.jit.ScriptModule:
+def to_torchscript(
+    model: DroNet, graph: str = "inference", symmetry: str = "none"
+) -> torch.jit.ScriptModule:
     """Traced and frozen CPU copy of `model` in eval mode, channels_last.
 
     `graph="inference"` (the export) traces `InferenceDroNet`, the same function with the input
     standardization folded into conv1; `graph="eager"` traces `DroNet` itself (for the tests).
+    `symmetry` (a `learning.symmetry.GROUPS` name) wraps it in `SymmetricPolicy`: the network
+    averaged over the rig's symmetric views of each image, in one batch.
     """
     if graph not in ("inference", "eager"):
         raise ValueError(f"graph must be 'inference' or 'eager', not {graph!r}")
     cpu = to_channels_last(copy.deepcopy(model)).eval()
     module: torch.nn.Module = InferenceDroNet(cpu).eval() if graph == "inference" else cpu
+    if symmetry != "none":
+        module = SymmetricPolicy(module, symmetry).eval()
     with torch.no_grad(), torchscript_calls():  # TorchScript is the drone's format, for now
         traced = torch.jit.trace(module, example_input(1))  # type: ignore[no-untyped-call]
         frozen: torch.jit.ScriptModule = torch.jit.freeze(traced)
@@ -110,6 +117,7 @@ def policy_metadata(
     manifest: dict[str, Any],
     test_metrics: dict[str, Any] | None,
     training: dict[str, Any],
+    symmetry: str = "none",
 ) -> dict[str, Any]:
     """`companion.model_file.base_metadata()` plus what this network and its data were.
 
@@ -145,6 +153,12 @@ def policy_metadata(
             },
             "runtime": {
                 "graph": "frozen, channels_last, standardization folded into conv1",
+                "symmetry": {
+                    "group": symmetry,
+                    "views": len(require_group(symmetry)),
+                    "what": "the network averaged over the camera rig's symmetric views of each "
+                    "image, outputs mapped back to the body frame (sim_harness.learning.symmetry)",
+                },
                 "onednn_fusion": "recommended: torch.jit.enable_onednn_fusion(True) before the "
                 "first call; the graph compiles into fused partitions during its first 2 calls",
                 "threads": 1,
@@ -163,30 +177,34 @@ def export_policy(
     training: dict[str, Any],
     scripted: torch.jit.ScriptModule | None = None,
     check_images_u8: torch.Tensor | None = None,
+    symmetry: str = "none",
 ) -> ExportResult:
     """Write `path` (+ sidecar) and its eager weights; returns the hash and the export check.
 
     `scripted` is `to_torchscript(model)` when the caller already built it (e.g. to evaluate
     it); `check_images_u8` (B, 64, 384) are the images compared between eager and exported
     (default: 16 seeded random images). Raises `ModelError` if they differ by more than
-    `EXPORT_TOLERANCE_MPS`.
+    `EXPORT_TOLERANCE_MPS`. `symmetry`: the group the exported graph averages over (`scripted`,
+    when given, must have been built with the same one); recorded in the metadata.
     """
     path = Path(path)
-    scripted = scripted if scripted is not None else to_torchscript(model)
+    require_group(symmetry)
+    scripted = scripted if scripted is not None else to_torchscript(model, symmetry=symmetry)
     if check_images_u8 is None:
         generator = torch.Generator().manual_seed(0)
         check_images_u8 = torch.randint(
             0, 256, tuple(example_input(16).shape), dtype=torch.uint8, generator=generator
         )
     cpu = to_channels_last(copy.deepcopy(model)).eval()
+    eager: torch.nn.Module = cpu if symmetry == "none" else SymmetricPolicy(cpu, symmetry).eval()
     with torch.inference_mode():
-        diff = float((scripted(check_images_u8) - cpu(check_images_u8)).abs().max())
+        diff = float((scripted(check_images_u8) - eager(check_images_u8)).abs().max())
     if not diff <= EXPORT_TOLERANCE_MPS:
         raise ModelError(f"exported graph differs from the eager model by {diff:g} m/s: refused")
     weights = weights_path_for(path)
     weights.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"model_config": model_config(cpu), "model": cpu.state_dict()}, weights)
-    metadata = policy_metadata(cpu, manifest, test_metrics, training)
+    metadata = policy_metadata(cpu, manifest, test_metrics, training, symmetry)
     metadata["eager_weights"] = {
         "file": weights.name,
         "sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),

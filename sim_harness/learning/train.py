@@ -52,6 +52,7 @@ from sim_harness.learning.checkpoint import (
 )
 from sim_harness.learning.evaluate import predict
 from sim_harness.learning.model import DroNet, build_model, parameter_groups
+from sim_harness.learning.symmetry import augment
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
 from sim_harness.sim.progress import progress_bar
 
@@ -84,10 +85,27 @@ def _train_epoch(
     grad_clip_norm: float | None,
     progress: bool,
     desc: str,
+    augment_group: str = "none",
+    augment_seed: tuple[int, int] = (0, 0),
 ) -> tuple[float, float, float]:
-    """One pass over `batches`; returns (mean training loss, samples/s, fraction clipped)."""
+    """One pass over `batches`; returns (mean training loss, samples/s, fraction clipped).
+
+    `augment_group`: each sample is shown in a random view of this symmetry group with its label
+    transformed to match (`learning.symmetry.augment`), drawn from a generator seeded by
+    `augment_seed` (the run's seed and the epoch: a resumed epoch sees the same views).
+    """
     model.train()
     pin = device.type == "cuda"
+    generator = torch.Generator().manual_seed(augment_seed[0] * 1_000_003 + augment_seed[1])
+
+    def batch(rows: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        images, targets = load_batch(split, rows)
+        if augment_group != "none":
+            images, targets = augment(images, targets, generator, augment_group)
+        if pin:
+            images, targets = images.pin_memory(), targets.pin_memory()
+        return images, targets
+
     total = torch.zeros((), dtype=torch.float64, device=device)
     clipped = torch.zeros((), dtype=torch.int64, device=device)
     seen = 0
@@ -100,9 +118,7 @@ def _train_epoch(
         unit_scale=True,
         leave=False,
     ) as bar:
-        for step, (images, targets) in enumerate(
-            prefetch(load_batch(split, rows, pin) for rows in batches)
-        ):
+        for step, (images, targets) in enumerate(prefetch(batch(rows) for rows in batches)):
             images = images.to(device, non_blocking=True)
             targets = targets.to(device, non_blocking=True)
             loss = velocity_loss(model(images), targets)
@@ -257,6 +273,8 @@ def train_on(
             config.grad_clip_norm,
             config.progress,
             f"epoch {epoch}/{config.max_epochs}",
+            config.augment,
+            (config.seed, epoch),
         )
         val_loss = validation_loss(model, val_data, config.eval_batch_size, device)
         lr = optimizer.param_groups[0]["lr"]

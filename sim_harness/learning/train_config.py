@@ -11,6 +11,7 @@ import torch
 
 from companion.errors import ConfigError
 from companion.validation import require_int_range, require_positive, require_range
+from sim_harness.learning.symmetry_views import require_group
 
 DEVICES = ("auto", "cpu", "cuda")
 
@@ -45,6 +46,9 @@ class TrainConfig:
     # validation stays on `dataset`'s own split, so runs stay comparable
     extra_train: tuple[Path, ...] = ()
     init_from: Path | None = None  # start from these weights (checkpoint or policy file)
+    # show each training sample in a random view of this symmetry group of the camera rig, label
+    # transformed to match (`sim_harness.learning.symmetry`); "none": the images as recorded
+    augment: str = "none"
 
     def __post_init__(self) -> None:
         require_int_range("max_epochs", self.max_epochs, 1)
@@ -69,6 +73,7 @@ class TrainConfig:
         require_range("ram_max_gib", self.ram_max_gib, 0.0, None)
         if self.threads is not None:
             require_int_range("threads", self.threads, 1, 1024)
+        require_group(self.augment, "augment")
         if self.init_from is not None and self.resume:
             raise ConfigError("init_from: a resumed run continues from its own checkpoint")
 

@@ -72,3 +72,18 @@ def group_centroid_distances(
         centroid = p[..., g == k, :].mean(axis=-2)
         out[..., k] = np.linalg.norm(centroid - targets[k], axis=-1)
     return out
+
+
+def centroid_progress(positions: ArrayLike, goal: ArrayLike) -> float:
+    """How far the whole flock's centroid moved towards `goal` (m) from the first step to the last.
+
+    positions (T, N, 3); the displacement of the centroid projected on the unit vector from its
+    first position to `goal` (negative: it moved away). With opposing goals, `goal` is the
+    majority's: the teacher's flock drifts towards it at about (n_majority - n_minority) / N times
+    the migration speed, while two groups that only pull against each other stay put.
+    """
+    p = np.asarray(positions, dtype=np.float64)
+    start, end = p[0].mean(axis=0), p[-1].mean(axis=0)
+    towards = np.asarray(goal, dtype=np.float64) - start
+    norm = float(np.linalg.norm(towards))
+    return float((end - start) @ towards / norm) if norm > 0.0 else 0.0

@@ -282,6 +282,14 @@ def summarize(
         "order_mean": _finite_or_none(order_mean),
         "order_final": _finite_or_none(float(log.order[-1])),
         "mean_speed_mps": float(speeds.mean()),
+        # towards the goal whose arrival ends the run (the majority's, with opposing goals)
+        "centroid_progress_m": (
+            metrics.centroid_progress(
+                log.pos_world_enu, log.scenario.goals[log.scenario.arrival_goals[0]]
+            )
+            if log.scenario.has_goal
+            else None
+        ),
     }
 
 

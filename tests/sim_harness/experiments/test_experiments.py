@@ -16,7 +16,8 @@ def test_suites_fly_the_papers_experiments_on_evaluation_seeds() -> None:
     assert [e.key for e in paper.experiment_list] == ["common", "opposing"]
     assert paper.seeds == tuple(range(1000, 1005))  # default 5 seeds
     bar = SuiteConfig(suite="bar")
-    assert len(bar.seeds) == 10 and min(bar.seeds) >= EVAL_SEED_BASE
+    assert len(bar.seeds) == 20 and min(bar.seeds) >= EVAL_SEED_BASE
+    assert {e.key for e in bar.experiment_list} == set(EXPERIMENTS)  # the bar flies all six
     gen = {
         (e.scenario, e.n_agents, e.v_max_mps) for e in SuiteConfig("generalization").experiment_list
     }

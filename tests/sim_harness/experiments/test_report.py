@@ -12,7 +12,7 @@ import pytest
 from sim_harness.cli import main
 from sim_harness.experiments.report import _model_lines
 from sim_harness.experiments.runner import RunRecord, SuiteResult
-from sim_harness.experiments.stats import ARRIVAL_RATIO_BAR, bar_checks, table_row
+from sim_harness.experiments.stats import table_row
 from sim_harness.experiments.suites import SuiteConfig
 from sim_harness.sim.controllers import TeacherController
 from sim_harness.sim.rollout import fly, summarize
@@ -41,7 +41,7 @@ def test_report_has_the_bar_figures_and_a_table_per_experiment_and_controller(
     text = (paper_suite_dir / "report.md").read_text()
     assert text.startswith("# Suite `paper`")
     assert "## The bar (paper suite checks, 2 seeds): NOT met" in text  # 0.4 s: no arrival
-    assert "Checked on these 2-seed flights only. The bar itself is judged on 10" in text
+    assert "Checked on these 2-seed flights only. The bar itself is judged on 20" in text
     for heading in (
         "## Common goal (N = 9, v_max = 2 m/s)",
         "## Opposing goals (5 vs 4 agents)",
@@ -85,7 +85,8 @@ def test_results_json_holds_the_tables_computed_from_the_runs(paper_suite_dir) -
             assert row["collision_free_runs"] == sum(s["collision_free"] for s in runs)
             timing = data["timings"][f"{experiment}/{controller}"]
             assert (timing["render_ms_per_step"] > 0) == (controller == "cnn")
-    assert [b["passed"] for b in data["bar"]][1] is False  # nothing arrived in 0.4 s
+    passed = {b["name"]: b["passed"] for b in data["bar"]}
+    assert passed["common goal: every run arrives"] is False  # nothing arrived in 0.4 s
     assert len(data["runs"]) == 8
 
 
@@ -101,51 +102,8 @@ def tiny_log():
     return fly(scenario, TeacherController(scenario.config.flocking))
 
 
-def _bar_suite(tiny_log, cnn_common, cnn_opposing):
-    teacher = [
-        _record(s, "teacher", "common", tiny_log, arrived=True, arrival_time_s=30.0)
-        for s in range(1000, 1004)
-    ]
-    runs = teacher + [
-        _record(1000 + k, "cnn", "common", tiny_log, **c) for k, c in enumerate(cnn_common)
-    ]
-    runs += [
-        _record(1000 + k, "cnn", "opposing", tiny_log, **c) for k, c in enumerate(cnn_opposing)
-    ]
-    return SuiteResult(SuiteConfig(suite="bar", n_seeds=4), runs, "0" * 64, {})
-
-
 def arrived(t, **extra):
     return {"arrived": True, "arrival_time_s": t, "collision_free": True, **extra}
-
-
-def test_bar_passes_only_when_every_criterion_holds(tiny_log) -> None:
-    good = [arrived(t) for t in (33.0, 35.0, 38.0, 40.0)]
-    together = [{"flock_split": False}] * 4
-    checks = bar_checks(_bar_suite(tiny_log, good, together))
-    assert [c.passed for c in checks] == [True, True, True, True]
-    assert "1.22x" in checks[2].detail  # median 36.5 s over the teacher's 30 s
-
-    slow = [arrived(t) for t in (38.0, 39.0, 40.0, 41.0)]  # median 39.5 s: 1.32x
-    assert ARRIVAL_RATIO_BAR < 39.5 / 30.0
-    assert [c.passed for c in bar_checks(_bar_suite(tiny_log, slow, together))] == [
-        True,
-        True,
-        False,
-        True,
-    ]
-    bumped = [*good[:3], arrived(40.0, collision_free=False)]
-    split = [*together[:3], {"flock_split": True}]
-    stalled = [*good[:3], {"arrived": False, "arrival_time_s": None, "collision_free": True}]
-    assert [c.passed for c in bar_checks(_bar_suite(tiny_log, bumped, split))] == [
-        False,
-        True,
-        True,
-        False,
-    ]
-    checks = bar_checks(_bar_suite(tiny_log, stalled, together))
-    assert [c.passed for c in checks] == [True, False, True, True]
-    assert "seeds [1003]" in checks[1].detail
 
 
 def test_table_row_counts_stalls_and_ratio(tiny_log) -> None:

@@ -152,6 +152,31 @@ def test_low_pass_filter_is_off_by_default_and_smooths_when_on(policy) -> None:
     np.testing.assert_allclose(filtered.command(obs), alpha * v, atol=1e-12)
 
 
+def test_output_jitter_is_bounded_seeded_and_off_by_default(policy) -> None:
+    images = random_images(3, 4)
+    own = own_state([[0, 0, 5], [3, 0, 5], [0, 3, 5]], [yaw_quat(0.3)] * 3, [[np.nan] * 3] * 3)
+    obs = Observation(own=own, images=images)
+    loose = VisionControlConfig(k_mig=0.0, v_max_mps=20.0)
+    assert loose.output_jitter_mps == 0.0
+    clean = VisionController(policy, loose)
+    clean.reset(3)
+    clean.command(obs)
+    v = clean.last_vel_body_flu
+
+    def jittered(seed):
+        config = dataclasses.replace(loose, output_jitter_mps=1e-3, jitter_seed=seed)
+        controller = VisionController(policy, config)
+        controller.reset(3)
+        return [(controller.command(obs), controller.last_vel_body_flu)[1] for _ in range(2)]
+
+    first, again, other = jittered(7), jittered(7), jittered(8)
+    for step in first:
+        assert 0.0 < np.abs(step - v).max() <= 1e-3
+    np.testing.assert_array_equal(first[0], again[0])  # the same seed, the same flight
+    assert not np.array_equal(first[0], first[1])  # fresh noise each step
+    assert not np.array_equal(first[0], other[0])
+
+
 def test_a_cnn_flight_sees_only_its_own_images_rendered_at_capture_time(policy, tmp_path) -> None:
     scenario = build_scenario(ScenarioConfig(name="common", n_agents=3, seed=1000, duration_s=1.0))
     config = VisionControlConfig.from_flocking(scenario.config.flocking)
@@ -257,6 +282,7 @@ def test_the_teacher_is_not_rendered_for(policy) -> None:
         ({"low_pass_cutoff_hz": 0.0}, "vision.low_pass_cutoff_hz"),
         ({"k_mig": -1.0}, "vision.k_mig"),
         ({"v_max_mps": 0.0}, "vision.v_max_mps"),
+        ({"output_jitter_mps": -1e-6}, "vision.output_jitter_mps"),
     ],
 )
 def test_bad_control_config_names_the_field(kwargs, field) -> None:
