@@ -5,16 +5,18 @@ fusion) is a change of behaviour: the drone would fly differently. The file is l
 the drone loads it (`Policy.load`, hash checked against its sidecar, warm-up), fused and unfused,
 and run on fixed images, one by one through `infer` (the daemon's call, with its 10 m/s bound)
 and as one batch (`infer_batch`, raw); the outputs must equal the recorded ones to
-`TOLERANCE_MPS`. The images: uniform noise (far from what the cameras see: the model answers
-~12 m/s, which the drone refuses), noise with about the training images' pixel statistics, a
-constant gray, and a horizon with two dark drones.
+`TOLERANCE_MPS`. The images: uniform noise (far from what the cameras see), noise with about the
+training images' pixel statistics, a constant gray, and a horizon with two dark drones. An output
+over the daemon's 10 m/s bound must be refused by `infer` (the shipped model's are all below it).
 
 Tolerance: 1e-4 m/s. Kernel choice (oneDNN's fused partitions vs the plain graph, batch 1 vs
 batch 6, AVX2 vs AVX-512, thread count) reorders float32 sums: measured here, that moves these
 outputs by at most 1.4e-6 m/s (the sidecar's export check: 5.8e-7 between the eager and the
 exported model). A 1e-4 m/s velocity error integrates to 1 mm in 10 s of flight, below anything
 the control law or PX4 resolves; a change that matters moves the outputs by far more (measured:
-one grey level added to every pixel of an image, 7e-3 m/s; the faces rotated by one, 1.3 m/s).
+one grey level added to every pixel of an image, 7e-3 m/s with the model of 2026-11; the faces
+rotated by one turn the answer by 90 degrees: the shipped policy averages over the rig's quarter
+turns, `sim_harness.learning.symmetry`).
 
 Regenerate the golden file (after shipping a new model on purpose) with
 `.venv/bin/python tests/companion/test_shipped_model.py --regenerate`; it records the model's
@@ -121,6 +123,29 @@ def test_the_shipped_model_gives_its_recorded_outputs(graph_fusion: bool) -> Non
     # input (a constant) would not pass by matching constant golden values.
     values = np.array(list(golden["outputs"].values()))
     assert np.ptp(values, axis=0).max() > 100 * TOLERANCE_MPS
+
+
+def test_the_shipped_model_is_the_symmetrized_policy_its_metadata_names() -> None:
+    """The sidecar says the graph averages over the rig's quarter turns (c4); a constant image
+    looks the same in every view, so such a policy's horizontal answer to it is exactly zero,
+    and a quarter turn of the faces turns its answer by a quarter turn."""
+    metadata = json.loads(sidecar_path(MODEL).read_text())["metadata"]
+    assert metadata["runtime"]["symmetry"] == {
+        **metadata["runtime"]["symmetry"],
+        "group": "c4",
+        "views": 4,
+    }
+    golden = json.loads(GOLDEN.read_text())["outputs"]
+    assert np.abs(golden[f"gray{GRAY}"][:2]).max() < 1e-6 < abs(golden[f"gray{GRAY}"][2])
+    image = inputs()["horizon"]
+    tiles = image.reshape(IMAGE_HEIGHT_PX, 6, IMAGE_HEIGHT_PX)
+    turned = tiles[:, [3, 0, 1, 2, 4, 5], :].copy()  # a quarter turn left: front <- left, ...
+    turned[:, 4] = np.rot90(tiles[:, 4], 1)
+    turned[:, 5] = np.rot90(tiles[:, 5], -1)
+    with Policy.load(PolicyConfig(model_path=MODEL)) as policy:
+        out = policy.infer_batch(np.stack([image, turned.reshape(image.shape)]), zero_invalid=False)
+    vx, vy, vz = out[0]
+    np.testing.assert_allclose(out[1], [vy, -vx, vz], atol=TOLERANCE_MPS)
 
 
 @pytest.mark.parametrize("graph_fusion", [False, True], ids=["unfused", "fused"])
