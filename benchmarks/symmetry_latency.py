@@ -12,15 +12,22 @@ interleaved in rounds so that load changes hit them alike. Prints p50 / p99 and 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
-from cnn_latency import RESULTS, WARMUP_CALLS, calibrated_model, load_script, summarize, time_calls
+from cnn_latency import (
+    RESULTS,
+    WARMUP_CALLS,
+    calibrated_model,
+    load_script,
+    machine,
+    summarize,
+    time_calls,
+    write_report,
+)
 
 from companion.model_file import enable_graph_fusion
 from sim_harness.learning.export import export_policy, load_eager_model
@@ -71,16 +78,9 @@ def main() -> None:
         "model": str(args.model) if args.model else "untrained ResNet-8 (seed 0)",
         "results": results,
         "load_average_1min": [load_before[0], os.getloadavg()[0]],
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-        },
+        "machine": machine(),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {args.out}")
+    write_report(report, args.out)
 
 
 if __name__ == "__main__":
