@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from sim_harness.experiments.runner import RunRecord, SuiteResult
+from sim_harness.experiments.stats import median_arrival
 
 COLLISION_M = 1.0
 COMMON_LOWEST_PAIR_M = 1.05
@@ -48,11 +49,6 @@ class BarCheck:
     detail: str
 
 
-def _median_arrival(records: list[RunRecord]) -> float:
-    times = [r.summary["arrival_time_s"] if r.summary["arrived"] else math.inf for r in records]
-    return float(statistics.median(times))
-
-
 def _seconds(t: float) -> str:
     return f"{t:.1f} s" if math.isfinite(t) else "never (half or more stalled)"
 
@@ -68,7 +64,7 @@ def _no_collision(label: str, cnn: list[RunRecord]) -> BarCheck:
 
 
 def _arrival(label: str, cnn: list[RunRecord], teacher: list[RunRecord], bound: float) -> BarCheck:
-    ours, theirs = _median_arrival(cnn), _median_arrival(teacher)
+    ours, theirs = median_arrival(cnn) or math.nan, median_arrival(teacher) or math.nan
     ratio = ours / theirs if math.isfinite(theirs) and theirs > 0 else math.nan
     detail = f"median arrival: CNN {_seconds(ours)}, teacher {_seconds(theirs)}"
     if math.isfinite(ratio):

@@ -28,7 +28,7 @@ from sim_harness.experiments.runner import RunRecord, SuiteResult
 from sim_harness.experiments.suites import EXPERIMENTS
 
 
-def _median_arrival(records: list[RunRecord]) -> float | None:
+def median_arrival(records: list[RunRecord]) -> float | None:
     """Median arrival time in s, non-arrivals counted as infinite; None without runs."""
     if not records:
         return None
@@ -51,8 +51,8 @@ def table_row(
 ) -> dict[str, Any]:
     """The aggregate of one experiment and controller (see the module docstring)."""
     orders = [r.summary["order_mean"] for r in records if r.summary["order_mean"] is not None]
-    median = _median_arrival(records)
-    teacher_median = _median_arrival(teacher)
+    median = median_arrival(records)
+    teacher_median = median_arrival(teacher)
     ratio = None
     if median is not None and teacher_median not in (None, 0.0) and math.isfinite(median):
         assert teacher_median is not None
