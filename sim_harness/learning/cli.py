@@ -75,6 +75,15 @@ def add_learning_commands(sub: Any) -> None:
         help="show each sample in a random view of this symmetry group of the camera rig "
         "(quarter turns c4, mirror, both d4), its label transformed to match (default none)",
     )
+    t.add_argument(
+        "--weight-speed",
+        type=float,
+        default=None,
+        metavar="MPS",
+        help="weight each sample's squared error by max(1, |target| / MPS), at most "
+        "--weight-cap, so rare large commands are not shrunk (default: plain MSE, the paper's)",
+    )
+    t.add_argument("--weight-cap", type=float, default=4.0, help="largest weight (default 4)")
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(handler=_train)
 
@@ -135,6 +144,8 @@ def _train(args: argparse.Namespace) -> int:
         extra_train=tuple(args.extra_train),
         init_from=args.init_from,
         augment=args.augment,
+        weight_speed_mps=args.weight_speed,
+        weight_cap=args.weight_cap,
         progress=not args.no_progress,
         command=command_line(),
     )

@@ -68,6 +68,23 @@ def velocity_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (pred - target).square().mean()
 
 
+def speed_weights(target: torch.Tensor, speed_mps: float, cap: float) -> torch.Tensor:
+    """Per-sample weights max(1, |target| / speed_mps), at most `cap`: (B, 3) -> (B,)."""
+    return (target.norm(dim=1) / speed_mps).clamp(min=1.0, max=cap)
+
+
+def weighted_velocity_loss(
+    pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
+) -> torch.Tensor:
+    """Squared error averaged over the axes, then over the batch with `weights` (B,), (m/s)^2.
+
+    Normalized by the weights' sum: with all weights equal it is `velocity_loss`, so the learning
+    rate keeps its meaning.
+    """
+    per_sample = (pred - target).square().mean(dim=1)
+    return (weights * per_sample).sum() / weights.sum()
+
+
 def validation_loss(
     model: DroNet, split: SplitArrays, batch_size: int, device: torch.device
 ) -> float:
@@ -87,8 +104,12 @@ def _train_epoch(
     desc: str,
     augment_group: str = "none",
     augment_seed: tuple[int, int] = (0, 0),
+    weighting: tuple[float, float] | None = None,
 ) -> tuple[float, float, float]:
     """One pass over `batches`; returns (mean training loss, samples/s, fraction clipped).
+
+    `weighting`: (speed_mps, cap) of `speed_weights`, or None for the plain mean squared error;
+    the returned loss is the one minimized (weighted when weighting).
 
     `augment_group`: each sample is shown in a random view of this symmetry group with its label
     transformed to match (`learning.symmetry.augment`), drawn from a generator seeded by
@@ -121,7 +142,11 @@ def _train_epoch(
         for step, (images, targets) in enumerate(prefetch(batch(rows) for rows in batches)):
             images = images.to(device, non_blocking=True)
             targets = targets.to(device, non_blocking=True)
-            loss = velocity_loss(model(images), targets)
+            if weighting is None:
+                loss = velocity_loss(model(images), targets)
+            else:
+                weights = speed_weights(targets, *weighting)
+                loss = weighted_velocity_loss(model(images), targets, weights)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()  # type: ignore[no-untyped-call]
             if grad_clip_norm is not None:
@@ -275,6 +300,9 @@ def train_on(
             f"epoch {epoch}/{config.max_epochs}",
             config.augment,
             (config.seed, epoch),
+            None
+            if config.weight_speed_mps is None
+            else (config.weight_speed_mps, config.weight_cap),
         )
         val_loss = validation_loss(model, val_data, config.eval_batch_size, device)
         lr = optimizer.param_groups[0]["lr"]

@@ -49,6 +49,11 @@ class TrainConfig:
     # show each training sample in a random view of this symmetry group of the camera rig, label
     # transformed to match (`sim_harness.learning.symmetry`); "none": the images as recorded
     augment: str = "none"
+    # weight each sample's squared error by max(1, |target| / weight_speed_mps), capped at
+    # `weight_cap`, so the rare large commands (a neighbour close by, a stretched flock) are not
+    # shrunk towards the mean; None: the paper's plain mean squared error
+    weight_speed_mps: float | None = None
+    weight_cap: float = 4.0
 
     def __post_init__(self) -> None:
         require_int_range("max_epochs", self.max_epochs, 1)
@@ -74,6 +79,9 @@ class TrainConfig:
         if self.threads is not None:
             require_int_range("threads", self.threads, 1, 1024)
         require_group(self.augment, "augment")
+        if self.weight_speed_mps is not None:
+            require_positive("weight_speed_mps", self.weight_speed_mps)
+        require_range("weight_cap", self.weight_cap, 1.0, None)
         if self.init_from is not None and self.resume:
             raise ConfigError("init_from: a resumed run continues from its own checkpoint")
 

@@ -23,9 +23,11 @@ from sim_harness.learning.train import (
     TrainConfig,
     make_optimizer,
     make_scheduler,
+    speed_weights,
     train,
     train_on,
     velocity_loss,
+    weighted_velocity_loss,
 )
 
 
@@ -153,9 +155,38 @@ def test_loss_is_the_mean_squared_error() -> None:
     assert velocity_loss(pred, target).item() == pytest.approx((4.0 + 1.0) / 6.0)
 
 
+def test_speed_weights_grow_with_the_command_from_one_to_the_cap() -> None:
+    target = torch.tensor([[0.3, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, -10.0]])
+    assert speed_weights(target, 1.0, 4.0).tolist() == pytest.approx([1.0, 2.0, 4.0])
+    pred = torch.zeros(3, 3)
+    equal = weighted_velocity_loss(pred, target, torch.full((3,), 2.5))
+    assert equal.item() == pytest.approx(velocity_loss(pred, target).item())
+
+
+def test_weighting_moves_the_fit_towards_the_rare_large_commands() -> None:
+    # Three hovering samples and one large command that the images cannot tell apart: the plain
+    # MSE fit is their mean (shrunk to 1/4 of the large command); the weighted fit keeps more.
+    target = torch.tensor([[0.0, 0.0, 0.0]] * 3 + [[3.0, 0.0, 0.0]])
+    for weighting, expected in ((None, 0.75), ((1.0, 4.0), 1.5)):
+        c = torch.zeros(1, 3, requires_grad=True)
+        optimizer = torch.optim.SGD([c], lr=0.5)
+        for _ in range(400):
+            pred = c.expand(4, 3)
+            if weighting is None:
+                loss = velocity_loss(pred, target)
+            else:
+                loss = weighted_velocity_loss(pred, target, speed_weights(target, *weighting))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        assert c[0, 0].item() == pytest.approx(expected, abs=1e-4)
+
+
 @pytest.mark.parametrize(
     ("overrides", "field"),
     [
+        ({"weight_speed_mps": 0.0}, "weight_speed_mps"),
+        ({"weight_cap": 0.5}, "weight_cap"),
         ({"batch_size": 0}, "batch_size"),
         ({"lr": -1.0}, "lr"),
         ({"device": "tpu"}, "device"),
