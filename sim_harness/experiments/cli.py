@@ -87,7 +87,7 @@ def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_hel
         default=SHIPPED_LOW_PASS_HZ,
         metavar="HZ",
         help="low-pass the CNN output with this cut-off, or 'off' "
-        f"(default {SHIPPED_LOW_PASS_HZ:g}, what the shipped model is flown with)",
+        f"(default {_cutoff_text(SHIPPED_LOW_PASS_HZ)}, what the shipped model is flown with)",
     )
     p.add_argument(
         "--duration", type=float, default=None, help="cut every flight at this many seconds"
@@ -100,6 +100,10 @@ def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_hel
         action="store_true",
         help="no progress during each flight (a bar on a terminal, else a line every 10 %%)",
     )
+
+
+def _cutoff_text(cutoff_hz: float | None) -> str:
+    return "off" if cutoff_hz is None else f"{cutoff_hz:g} Hz"
 
 
 def _cutoff(text: str) -> float | None:

@@ -43,10 +43,12 @@ from sim_harness.sim.world import SimRates
 EVAL_SEED_BASE = 1000
 CONTROLLERS = ("teacher", "cnn")
 LABELS = {"teacher": "teacher", "cnn": "CNN"}  # how reports and the CLI name them
-# The low-pass cut-off the shipped model is flown with (models/README.md): the bar measured it
-# necessary (without it 2 of 10 common-goal runs dipped under 1 m, lowest 0.94 m). The paper's
-# filter is optional; `--low-pass off` flies the raw CNN output.
-SHIPPED_LOW_PASS_HZ = 2.0
+# The low-pass cut-off the shipped model is flown with (models/README.md): off. Chosen on training
+# seeds (`benchmarks/low_pass_tuning.py`, seeds 900-919): with the symmetrized models a 2 Hz
+# filter's lag cost close-range separation when opposing-goal neighbours cross (median closest
+# pair 0.78 m vs 0.85 m unfiltered, teacher 0.79 m) and gained nothing in order or drift. The
+# paper's filter is optional; `--low-pass HZ` turns it on.
+SHIPPED_LOW_PASS_HZ: float | None = None
 
 
 @dataclass(frozen=True)

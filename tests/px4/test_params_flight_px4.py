@@ -43,7 +43,7 @@ def test_px4_flies_the_daemons_climb_and_a_clean_exit_only_warns_of_the_lost_com
     assert PARAMS["MPC_Z_VEL_MAX_UP"] >= -CLIMB_NED_MPS  # the file lets PX4 fly it
     run = daemon_run(shipped, policy=make_policy(CLIMB_BODY_FLU), engage="auto")
     gcs.wait_until(lambda: gcs.mode is Px4Mode.OFFBOARD, ENGAGE_GUARD_S, "OFFBOARD")
-    time.sleep(3.0)  # low-pass (2 Hz) and PX4's acceleration limit settle
+    time.sleep(3.0)  # PX4's acceleration limit (and a low-pass, if the config sets one) settle
     assert gcs.mode is Px4Mode.OFFBOARD
     setpoint_vz, vehicle_vz = mean_vz_ned(gcs, 0.5)
     # Stock-file PX4 clipped its setpoint to -1.00 here; now it flies the command.
