@@ -197,10 +197,10 @@ def _export(args: argparse.Namespace) -> int:
     from sim_harness.learning.checkpoint import LAST_NAME, CheckpointError, load_checkpoint
     from sim_harness.learning.evaluate import evaluate_split
     from sim_harness.learning.export import (
+        checkpoint_chain,
         export_policy,
         load_eager_model,
         to_torchscript,
-        training_chain,
     )
 
     if args.out.suffix != ".pt":
@@ -228,7 +228,7 @@ def _export(args: argparse.Namespace) -> int:
         "initial_val_mse": state["initial_val_loss"],
         "wall_time_s": last["wall_time_s"],
         "config": state["config"],
-        **training_chain(state["command"], state["config"].get("init_from")),
+        **checkpoint_chain(state),
     }
     result = export_policy(
         model,

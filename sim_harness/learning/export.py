@@ -266,22 +266,43 @@ def training_chain(command: str, init_from: str | None, depth: int = 0) -> dict[
     the policy file or checkpoint it started from; the chain is complete when its first command
     started from scratch, incomplete when an ancestor is missing or recorded no chain of its own.
     """
+    ancestors = ancestor_chain(init_from, depth)
+    return {"chain": [*ancestors["chain"], command], "chain_complete": ancestors["chain_complete"]}
+
+
+def ancestor_chain(init_from: str | None, depth: int = 0) -> dict[str, Any]:
+    """The chain that produced the weights at `init_from`, as that file says now (see above).
+
+    Training records it when a fine-tune starts (`init_chain` in its checkpoints): a policy file
+    is often overwritten later (a model shipped over the one it was tuned from), and resolving
+    the path again at export would then read the newer model's history.
+    """
     if not init_from:
-        return {"chain": [command], "chain_complete": True}
+        return {"chain": [], "chain_complete": True}
     inherited: dict[str, Any] = {"chain": [], "chain_complete": False}
     # An unreadable ancestor, or a history deeper than 20 (a cycle): incomplete from there on.
     with contextlib.suppress(OSError, ValueError, KeyError, TypeError, CompanionError):
         if depth < 20:
             inherited = _recorded_chain(Path(init_from), depth)
-    return {"chain": [*inherited["chain"], command], "chain_complete": inherited["chain_complete"]}
+    return inherited
+
+
+def checkpoint_chain(state: dict[str, Any], depth: int = 0) -> dict[str, Any]:
+    """The chain of a training checkpoint: its ancestors as recorded when it started (resolved
+    from `init_from` now for checkpoints written before that was recorded), then its command."""
+    recorded = state.get("init_chain")
+    if recorded is None:
+        return training_chain(state["command"], (state.get("config") or {}).get("init_from"), depth)
+    return {
+        "chain": [*recorded["chain"], state["command"]],
+        "chain_complete": bool(recorded["chain_complete"]),
+    }
 
 
 def _recorded_chain(parent: Path, depth: int) -> dict[str, Any]:
     """The chain that produced `parent`, a checkpoint or a policy file (its sidecar)."""
     if is_checkpoint(parent):
-        state = load_checkpoint(parent)
-        config = state.get("config") or {}
-        return training_chain(state["command"], config.get("init_from"), depth + 1)
+        return checkpoint_chain(load_checkpoint(parent), depth + 1)
     training = json.loads(sidecar_path(parent).read_text())["metadata"]["training"]
     if isinstance(training.get("chain"), list):
         return {"chain": training["chain"], "chain_complete": bool(training["chain_complete"])}

@@ -392,13 +392,14 @@ def _init_weights(model: DroNet, source: Path, state: dict[str, Any]) -> None:
     The standardization comes along with the weights (they were trained with it); the run's
     `model_config` records it.
     """
-    from sim_harness.learning.export import load_eager_model
+    from sim_harness.learning.export import ancestor_chain, load_eager_model
 
     init, _ = load_eager_model(Path(source), device=next(model.parameters()).device)
     model.load_state_dict(init.state_dict())
     state["model_config"]["pixel_mean"] = float(init.standardize.pixel_mean)
     state["model_config"]["pixel_std"] = float(init.standardize.pixel_std)
     state["init_from"] = str(source)
+    state["init_chain"] = ancestor_chain(str(source))  # before anything overwrites the source
     log.info("initialized from %s", source)
 
 

@@ -285,3 +285,34 @@ def test_a_fine_tune_records_the_whole_chain_of_training_commands(tmp_path) -> N
     }
     missing = training_chain("train Z", str(tmp_path / "gone.pt"))
     assert missing == {"chain": ["train Z"], "chain_complete": False}
+
+
+def test_a_chain_is_the_one_recorded_when_the_fine_tune_started(smoke_dataset, tmp_path) -> None:
+    # Round B is tuned from the shipped file, then shipped over it: exporting B again (or any
+    # descendant) must not read B's own history through the overwritten path.
+    shipped = tmp_path / "models" / "p.pt"
+
+    def run(name: str, init_from=None):
+        config = TrainConfig(
+            dataset=smoke_dataset,
+            out_dir=tmp_path / name,
+            max_epochs=1,
+            limit_train=16,
+            progress=False,
+            command=f"train {name}",
+            init_from=init_from,
+        )
+        train(config)
+        return config.out_dir
+
+    def export(run_dir, out) -> list[str]:
+        args = ["export", "--checkpoint", str(run_dir), "--dataset", str(smoke_dataset)]
+        assert main([*args, "--out", str(out), "--eval-out", str(tmp_path / "eval")]) == 0
+        return load_model(out).metadata["training"]["chain"]
+
+    assert export(run("A"), shipped) == ["train A"]
+    b = run("B", init_from=shipped)
+    assert export(b, shipped) == ["train A", "train B"]  # B shipped over A
+    assert export(b, tmp_path / "again.pt") == ["train A", "train B"]
+    c = run("C", init_from=b / "last.ckpt")
+    assert export(c, tmp_path / "c.pt") == ["train A", "train B", "train C"]
