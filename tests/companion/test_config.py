@@ -8,6 +8,7 @@ import pytest
 
 from companion.config import CompanionConfig, DaemonConfig, config_from_dict, load_config
 from companion.errors import ConfigError, ConfigErrors
+from sim_harness.experiments.suites import SHIPPED_LOW_PASS_HZ
 
 REPO = Path(__file__).resolve().parents[2]
 FACES = ("front", "right", "back", "left", "up", "down")
@@ -43,7 +44,8 @@ def test_the_shipped_example_config_loads() -> None:
     assert config.recorder.directory == Path("/var/lib/vision-swarm/flights")
     assert config.telemetry.listen_endpoints == ("tcp/127.0.0.1:7447",)
     assert not config.telemetry.multicast_scouting
-    assert config.control.low_pass_cutoff_hz == 2.0  # what the shipped model was flown with
+    # What the shipped model is flown with in simulation (unset: off; models/README.md).
+    assert config.control.low_pass_cutoff_hz == SHIPPED_LOW_PASS_HZ
     # The example spells out the defaults: it must not drift from the code.
     assert config.daemon == DaemonConfig()
 
