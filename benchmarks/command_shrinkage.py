@@ -1,0 +1,100 @@
+"""How much a policy shrinks large commands: its answer along the teacher's, by command size.
+
+    python benchmarks/command_shrinkage.py --model models/swarm_cnn.pt --dataset data/agg7 \
+        [--split val] [--samples 6000] [--seed 0]
+
+A network trained with a plain mean squared error on images that cannot pin every detail (a far
+group's distance from 2-3 pixel blobs) answers large commands too small: the loss is lowest at
+the mean of what each image might mean. The large commands are the ones the flock needs (a close
+neighbour, a stretched flock), so this script measures it. For a seeded draw of `--samples` of the
+split, binned by the teacher's |target|: the count, the RMSE of the 3-vector, the mean |target|
+and the mean of the policy's answer projected on the target's direction ("along"; equal to the
+mean |target| for a policy that does not shrink). Prints a table and writes JSON (default
+benchmarks/results/command_shrinkage.json). One torch thread; about a minute for 6,000 samples of
+a c4-symmetrized policy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from cnn_latency import RESULTS, machine, write_report
+
+from sim_harness.dataset.store import open_dataset
+from sim_harness.experiments.vision_controller import load_policy
+
+BINS_MPS = (0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0, float("inf"))
+BATCH = 256
+
+
+def shrinkage_table(pred: np.ndarray, target: np.ndarray) -> list[dict[str, Any]]:
+    """One row per |target| bin of `BINS_MPS` that holds samples: (N, 3) answers and targets."""
+    speed = np.linalg.norm(target, axis=1)
+    rows = []
+    for low, high in itertools.pairwise(BINS_MPS):
+        inside = (speed >= low) & (speed < high)
+        if not inside.any():
+            continue
+        error = pred[inside] - target[inside]
+        direction = target[inside] / np.maximum(speed[inside, None], 1e-9)
+        rows.append(
+            {
+                "target_mps": [low, high],
+                "samples": int(inside.sum()),
+                "rmse_mps": float(np.sqrt((error**2).sum(axis=1).mean())),
+                "target_mean_mps": float(speed[inside].mean()),
+                "along_mean_mps": float((pred[inside] * direction).sum(axis=1).mean()),
+            }
+        )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", type=Path, required=True, help="policy file (.pt)")
+    parser.add_argument("--dataset", type=Path, required=True)
+    parser.add_argument("--split", default="val", choices=("train", "val", "test"))
+    parser.add_argument("--samples", type=int, default=6000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=RESULTS / "command_shrinkage.json")
+    args = parser.parse_args()
+    split = open_dataset(args.dataset).split(args.split)
+    n = min(args.samples, split.n_samples)
+    rows = np.sort(np.random.default_rng(args.seed).choice(split.n_samples, n, replace=False))
+    images = np.asarray(split.images[rows])
+    target = np.asarray(split.targets[rows], dtype=np.float64)
+    start = time.perf_counter()
+    with load_policy(args.model, threads=1) as policy:
+        pred = np.concatenate(
+            [policy.infer_batch(images[i : i + BATCH]) for i in range(0, n, BATCH)]
+        ).astype(np.float64)
+    table = shrinkage_table(pred, target)
+    print(f"{args.model} on {args.dataset} {args.split}, {n} samples")
+    print("|target| m/s   samples   RMSE   mean |target|   mean along")
+    for row in table:
+        low, high = row["target_mps"]
+        print(
+            f"{low:4.2f}-{high:<6.2f} {row['samples']:9d} {row['rmse_mps']:6.3f}"
+            f" {row['target_mean_mps']:15.2f} {row['along_mean_mps']:12.2f}"
+        )
+    report = {
+        "benchmark": "command_shrinkage",
+        "model": str(args.model),
+        "dataset": str(args.dataset),
+        "split": args.split,
+        "samples": n,
+        "seed": args.seed,
+        "table": table,
+        "wall_s": time.perf_counter() - start,
+        "machine": machine(),
+    }
+    write_report(report, args.out)
+
+
+if __name__ == "__main__":
+    main()
