@@ -17,6 +17,7 @@ from typing import Any
 
 from companion.errors import ConfigError
 from sim_harness.dataset.cli import command_line
+from sim_harness.learning.lr_schedule import LR_SCHEDULES
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
 from sim_harness.learning.symmetry_views import GROUPS
 from sim_harness.sim.out_dir import require_writable_dir
@@ -84,6 +85,13 @@ def add_learning_commands(sub: Any) -> None:
         "--weight-cap, so rare large commands are not shrunk (default: plain MSE, the paper's)",
     )
     t.add_argument("--weight-cap", type=float, default=4.0, help="largest weight (default 4)")
+    t.add_argument(
+        "--lr-schedule",
+        choices=LR_SCHEDULES,
+        default="plateau",
+        help="plateau: the paper's (lr halved after 10 epochs without improvement); cosine: "
+        "lr decays batch by batch to 0 over --max-epochs (anneals a short fine-tune)",
+    )
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(handler=_train)
 
@@ -146,6 +154,7 @@ def _train(args: argparse.Namespace) -> int:
         augment=args.augment,
         weight_speed_mps=args.weight_speed,
         weight_cap=args.weight_cap,
+        lr_schedule=args.lr_schedule,
         progress=not args.no_progress,
         command=command_line(),
     )

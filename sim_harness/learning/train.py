@@ -24,6 +24,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,7 @@ from sim_harness.learning.checkpoint import (
     save_checkpoint,
 )
 from sim_harness.learning.evaluate import predict
+from sim_harness.learning.lr_schedule import cosine_lr
 from sim_harness.learning.model import DroNet, build_model, parameter_groups
 from sim_harness.learning.symmetry import augment
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
@@ -93,6 +95,12 @@ def validation_loss(
     return float(np.mean((pred - split.targets) ** 2, dtype=np.float64))
 
 
+def _cosine_lr_at(config: TrainConfig, epoch: int, n_batches: int) -> Callable[[int], float]:
+    """The lr of each batch of `epoch` (1-based) on the run's cosine curve."""
+    done, run = (epoch - 1) * n_batches, config.max_epochs * n_batches
+    return lambda step: cosine_lr(config.lr, done + step, run)
+
+
 def _train_epoch(
     model: DroNet,
     optimizer: torch.optim.Optimizer,
@@ -105,6 +113,7 @@ def _train_epoch(
     augment_group: str = "none",
     augment_seed: tuple[int, int] = (0, 0),
     weighting: tuple[float, float] | None = None,
+    lr_at: Callable[[int], float] | None = None,
 ) -> tuple[float, float, float]:
     """One pass over `batches`; returns (mean training loss, samples/s, fraction clipped).
 
@@ -114,6 +123,8 @@ def _train_epoch(
     `augment_group`: each sample is shown in a random view of this symmetry group with its label
     transformed to match (`learning.symmetry.augment`), drawn from a generator seeded by
     `augment_seed` (the run's seed and the epoch: a resumed epoch sees the same views).
+
+    `lr_at`: the lr of each batch by its index in the epoch (None: the optimizer's own).
     """
     model.train()
     pin = device.type == "cuda"
@@ -147,6 +158,9 @@ def _train_epoch(
             else:
                 weights = speed_weights(targets, *weighting)
                 loss = weighted_velocity_loss(model(images), targets, weights)
+            if lr_at is not None:
+                for group in optimizer.param_groups:
+                    group["lr"] = lr_at(step)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()  # type: ignore[no-untyped-call]
             if grad_clip_norm is not None:
@@ -289,6 +303,8 @@ def train_on(
         epoch += 1
         epoch_start = time.perf_counter()
         batches = shuffled_batches(train_data.n_samples, config.batch_size, config.seed, epoch)
+        cosine = config.lr_schedule == "cosine"
+        lr_at = _cosine_lr_at(config, epoch, len(batches)) if cosine else None
         train_loss, samples_per_s, clipped = _train_epoch(
             model,
             optimizer,
@@ -303,10 +319,12 @@ def train_on(
             None
             if config.weight_speed_mps is None
             else (config.weight_speed_mps, config.weight_cap),
+            lr_at,
         )
         val_loss = validation_loss(model, val_data, config.eval_batch_size, device)
-        lr = optimizer.param_groups[0]["lr"]
-        scheduler.step(val_loss)
+        lr = optimizer.param_groups[0]["lr"]  # the epoch's last batch's
+        if config.lr_schedule == "plateau":
+            scheduler.step(val_loss)
         improved = plateau.update(epoch, val_loss)
         history.append(
             {

@@ -11,6 +11,7 @@ import torch
 
 from companion.errors import ConfigError
 from companion.validation import require_int_range, require_positive, require_range
+from sim_harness.learning.lr_schedule import LR_SCHEDULES
 from sim_harness.learning.symmetry_views import require_group
 
 DEVICES = ("auto", "cpu", "cuda")
@@ -54,6 +55,8 @@ class TrainConfig:
     # shrunk towards the mean; None: the paper's plain mean squared error
     weight_speed_mps: float | None = None
     weight_cap: float = 4.0
+    # "plateau" (the paper's) or "cosine" (`sim_harness.learning.lr_schedule`)
+    lr_schedule: str = "plateau"
 
     def __post_init__(self) -> None:
         require_int_range("max_epochs", self.max_epochs, 1)
@@ -82,6 +85,10 @@ class TrainConfig:
         if self.weight_speed_mps is not None:
             require_positive("weight_speed_mps", self.weight_speed_mps)
         require_range("weight_cap", self.weight_cap, 1.0, None)
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ConfigError(
+                f"lr_schedule: {self.lr_schedule!r} is not one of {', '.join(LR_SCHEDULES)}"
+            )
         if self.init_from is not None and self.resume:
             raise ConfigError("init_from: a resumed run continues from its own checkpoint")
 

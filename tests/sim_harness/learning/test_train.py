@@ -1,5 +1,6 @@
 """Training on the smoke dataset: it learns, checkpoints, resumes exactly and stops on time."""
 
+import itertools
 import json
 
 import numpy as np
@@ -17,6 +18,7 @@ from sim_harness.learning.checkpoint import (
     load_optimizer_state,
     optimizer_state,
 )
+from sim_harness.learning.lr_schedule import cosine_lr
 from sim_harness.learning.model import build_model
 from sim_harness.learning.train import (
     Plateau,
@@ -149,6 +151,34 @@ def test_lr_halves_on_the_tenth_bad_epoch_and_training_stops_after_more_than_ten
     assert plateau.best_epoch == 2 and plateau.best_val_loss == 0.5
 
 
+def test_the_cosine_lr_falls_from_the_initial_lr_towards_zero_over_the_run() -> None:
+    lrs = [cosine_lr(1e-3, step, 1000) for step in range(1000)]
+    assert lrs[0] == 1e-3
+    assert lrs[500] == pytest.approx(0.5e-3)
+    assert all(a > b for a, b in itertools.pairwise(lrs))
+    assert 0.0 < lrs[-1] < 1e-8  # the last batch still learns, barely
+    for step in (-1, 1000):
+        with pytest.raises(ValueError, match="outside"):
+            cosine_lr(1e-3, step, 1000)
+
+
+def test_a_cosine_run_sets_each_batchs_lr_on_one_curve_across_epochs(
+    smoke_dataset, tmp_path
+) -> None:
+    # 64 samples in batches of 32: 2 batches an epoch, 4 in the run; each epoch records the lr
+    # of its last batch, and the checkpoint's optimizer holds it
+    result = train(quick(smoke_dataset, tmp_path, max_epochs=2, lr_schedule="cosine"))
+    assert [row["lr"] for row in result.history] == [
+        pytest.approx(cosine_lr(5e-3, 1, 4)),
+        pytest.approx(cosine_lr(5e-3, 3, 4)),
+    ]
+    groups = load_checkpoint(tmp_path / LAST_NAME)["optimizer"]["param_groups"]
+    assert all(g["lr"] == pytest.approx(cosine_lr(5e-3, 3, 4)) for g in groups)
+    # the paper's schedule leaves a two-epoch run at its initial lr
+    plateau = train(quick(smoke_dataset, tmp_path / "plateau", max_epochs=2))
+    assert [row["lr"] for row in plateau.history] == [5e-3, 5e-3]
+
+
 def test_loss_is_the_mean_squared_error() -> None:
     pred = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]])
     target = torch.tensor([[1.0, 0.0, 3.0], [0.0, 0.0, 1.0]])
@@ -187,6 +217,7 @@ def test_weighting_moves_the_fit_towards_the_rare_large_commands() -> None:
     [
         ({"weight_speed_mps": 0.0}, "weight_speed_mps"),
         ({"weight_cap": 0.5}, "weight_cap"),
+        ({"lr_schedule": "linear"}, "lr_schedule"),
         ({"batch_size": 0}, "batch_size"),
         ({"lr": -1.0}, "lr"),
         ({"device": "tpu"}, "device"),
