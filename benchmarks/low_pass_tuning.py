@@ -34,12 +34,14 @@ def _cutoff(text: str) -> float | None:
     return None if text in ("off", "none") else float(text)
 
 
-def _seeds(text: str) -> list[int]:
-    """'900,901' or '900-919' (inclusive), or both mixed."""
+def training_seeds(text: str) -> list[int]:
+    """'900,901' or '900-919' (inclusive), or both mixed; refuses evaluation seeds (>= 1000)."""
     seeds: list[int] = []
     for part in text.split(","):
         first, _, last = part.partition("-")
         seeds += range(int(first), int(last or first) + 1)
+    if max(seeds) >= EVAL_SEED_BASE:
+        raise ConfigError(f"seeds: tune on training seeds (< {EVAL_SEED_BASE}), got {seeds}")
     return seeds
 
 
@@ -71,9 +73,7 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=None, help="cut each flight (s)")
     parser.add_argument("--out", type=Path, default=RESULTS / "low_pass_tuning.json")
     args = parser.parse_args()
-    seeds = _seeds(args.seeds)
-    if max(seeds) >= EVAL_SEED_BASE:
-        raise ConfigError(f"seeds: tune on training seeds (< {EVAL_SEED_BASE}), got {seeds}")
+    seeds = training_seeds(args.seeds)
     cutoffs = [_cutoff(c) for c in args.cutoffs.split(",")]
     experiments = args.experiments.split(",")
     table: dict[str, dict[str, Any]] = {}

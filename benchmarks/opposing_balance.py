@@ -1,0 +1,147 @@
+"""Why a vision flock with opposing goals drifts slower than the teacher's: the CNN's net pull.
+
+    python benchmarks/opposing_balance.py --model models/swarm_cnn.pt [--seeds 900-903] \
+        [--settle 10] [--renderer pybullet]
+
+With opposing goals (5 agents to one point, 4 to the opposite one) the teacher's flock drifts
+towards the majority's goal at k_mig (5 - 4) / 9 = 0.111 m/s: separation and cohesion are pairwise
+antisymmetric, so the nine Reynolds commands sum to zero and only the migration terms move the
+centroid. The CNN's commands carry no such guarantee. Whatever they sum to, divided by N, is added
+to the drift; a slow drift is what sinks the order parameter (the agents' small velocities point
+every way around it).
+
+Flies the CNN unfiltered on training seeds (< 1000) and, at every control step after `--settle`
+seconds, evaluates the teacher's Reynolds command at the state the CNN flew into. The CNN's own
+Reynolds command is the logged setpoint minus the agent's migration term (steps where the speed
+cap acted are left out). Per group: the mean of both along the majority's goal direction; then
+their sum over the agents (the teacher's is 0), the drift that sum costs, and the measured drift
+of the centroid along that direction. Prints a table and writes JSON (default
+benchmarks/results/opposing_balance.json). One thread; about a minute per flight.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from cnn_latency import RESULTS, machine, write_report
+from low_pass_tuning import training_seeds
+
+from companion.flocking import flocking_command
+from sim_harness.experiments.runner import Job, fly_job
+from sim_harness.experiments.suites import SuiteConfig
+from sim_harness.experiments.vision_controller import load_policy
+from sim_harness.sim.rollout import FlightLog
+
+CAP_MARGIN_MPS = 1e-6  # a setpoint this close to v_max was capped: its Reynolds part is unknown
+
+
+def balance(log: FlightLog, settle_s: float) -> dict[str, Any]:
+    """The per-group and summed Reynolds commands of one opposing-goal flight (module docstring)."""
+    scenario = log.scenario
+    params = scenario.config.flocking
+    groups = scenario.groups
+    majority = int(np.bincount(groups).argmax())
+    teacher, cnn, direction = [], [], []
+    for k in np.nonzero(log.time_s >= settle_s)[0]:
+        setpoint = log.setpoint_world_enu[k]
+        if not np.isfinite(setpoint).all():
+            continue  # the last row: no command was sent after it
+        command = flocking_command(log.pos_world_enu[k], scenario.migration_points, params)
+        if (np.linalg.norm(setpoint, axis=1) >= params.v_max_mps - CAP_MARGIN_MPS).any():
+            continue
+        teacher.append(command.reynolds)
+        cnn.append(setpoint - command.migration)
+        mig = command.migration[groups == majority].mean(axis=0)
+        direction.append(mig / np.linalg.norm(mig))
+    if not teacher:
+        raise ValueError(f"no uncapped step after {settle_s} s")
+    u = np.array(direction)[:, None, :]  # (T, 1, 3): the majority's goal direction, per step
+    along_teacher = (np.array(teacher) * u).sum(axis=-1)  # (T, N)
+    along_cnn = (np.array(cnn) * u).sum(axis=-1)
+    settled = log.time_s >= settle_s
+    centroid = log.pos_world_enu[settled].mean(axis=1)
+    span_s = log.time_s[settled][-1] - log.time_s[settled][0]
+    drift = float((centroid[-1] - centroid[0]) @ u[-1, 0] / span_s)
+    n, n_major = len(groups), int((groups == majority).sum())
+    return {
+        "seed": scenario.config.seed,
+        "steps": len(teacher),
+        "groups": [
+            {
+                "agents": int((groups == g).sum()),
+                "majority": bool(g == majority),
+                "teacher_along_mps": float(along_teacher[:, groups == g].mean()),
+                "cnn_along_mps": float(along_cnn[:, groups == g].mean()),
+            }
+            for g in np.unique(groups)
+        ],
+        "sum_teacher_mps": float(along_teacher.sum(axis=1).mean()),
+        "sum_cnn_mps": float(along_cnn.sum(axis=1).mean()),
+        "drift_cost_mps": float(along_cnn.sum(axis=1).mean() / n),
+        "drift_mps": drift,
+        "teacher_drift_mps": params.k_mig * (2 * n_major - n) / n,
+        "order_mean_settled": float(np.nanmean(log.order[settled])),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", type=Path, required=True, help="policy file (.pt)")
+    parser.add_argument("--seeds", default="900-903", help="training-range seeds (< 1000)")
+    parser.add_argument("--settle", type=float, default=10.0, help="skip the start (s)")
+    parser.add_argument("--renderer", default="pybullet", help="default pybullet, as the bar")
+    parser.add_argument("--out", type=Path, default=RESULTS / "opposing_balance.json")
+    args = parser.parse_args()
+    seeds = training_seeds(args.seeds)
+    config = SuiteConfig(
+        suite="bar",
+        model_path=args.model,
+        low_pass_cutoff_hz=None,
+        renderer=args.renderer,
+        experiments=("opposing",),
+    )
+    start = time.perf_counter()
+    rows = []
+    with load_policy(args.model, threads=1) as policy:
+        for seed in seeds:
+            row = balance(fly_job(Job("opposing", "cnn", seed), config, policy).log, args.settle)
+            rows.append(row)
+            minority, majority = sorted(row["groups"], key=lambda g: g["majority"])
+            print(
+                f"seed {seed}: majority {majority['cnn_along_mps']:+.3f} (teacher at the state "
+                f"{majority['teacher_along_mps']:+.3f}), minority {minority['cnn_along_mps']:+.3f}"
+                f" ({minority['teacher_along_mps']:+.3f}); sum {row['sum_cnn_mps']:+.3f} m/s, "
+                f"drift {row['drift_mps']:.3f} m/s, order {row['order_mean_settled']:.2f}",
+                flush=True,
+            )
+    teacher_drift = rows[0]["teacher_drift_mps"]
+    summary = {
+        "teacher_drift_mps": teacher_drift,
+        "drift_median_mps": statistics.median(r["drift_mps"] for r in rows),
+        "drift_cost_median_mps": statistics.median(r["drift_cost_mps"] for r in rows),
+        "order_settled_mean": statistics.fmean(r["order_mean_settled"] for r in rows),
+    }
+    print(
+        f"median drift {summary['drift_median_mps']:.3f} m/s (teacher {teacher_drift:.3f}); "
+        f"the CNN's net pull costs {summary['drift_cost_median_mps']:+.3f} m/s of it"
+    )
+    report = {
+        "benchmark": "opposing_balance",
+        "model": str(args.model),
+        "renderer": args.renderer,
+        "settle_s": args.settle,
+        "seeds": rows,
+        "summary": summary,
+        "wall_s": time.perf_counter() - start,
+        "machine": machine(),
+    }
+    write_report(report, args.out)
+
+
+if __name__ == "__main__":
+    main()
