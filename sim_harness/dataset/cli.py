@@ -1,4 +1,5 @@
-"""`swarm-sim dataset generate | inspect | merge` (`aggregate` flies the CNN: experiments/cli)."""
+"""`swarm-sim dataset generate | inspect | merge | rerender` (`aggregate` flies the CNN:
+experiments/cli)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from sim_harness.dataset.store import open_dataset
 from sim_harness.errors import ConfigError
 from sim_harness.sim.executor import add_cluster_options, cluster_choice
 from sim_harness.sim.out_dir import require_writable_dir
-from sim_harness.sim.renderers import add_renderer_option
+from sim_harness.sim.renderers import RENDERERS, add_renderer_option
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -28,7 +29,7 @@ def _shard(text: str) -> tuple[int, int]:
 
 def add_dataset_commands(sub: Any) -> Any:
     """Register `dataset` and its subcommands; return its subparsers (`aggregate` joins later)."""
-    p = sub.add_parser("dataset", help="generate, inspect and merge camera datasets")
+    p = sub.add_parser("dataset", help="generate, inspect, merge and redraw camera datasets")
     dsub = p.add_subparsers(dest="dataset_command", required=True)
     g = dsub.add_parser(
         "generate",
@@ -70,6 +71,19 @@ def add_dataset_commands(sub: Any) -> Any:
     m.add_argument("sources", type=Path, nargs="+")
     m.add_argument("--out", type=Path, required=True)
     m.set_defaults(handler=_merge)
+    r = dsub.add_parser(
+        "rerender",
+        help="draw a dataset's images again with another renderer (same states and labels)",
+        description="Redraw every image of a complete dataset from the poses it recorded, with "
+        "another renderer, into a new folder: no flight is repeated (aggregated datasets "
+        "included). Interrupted? Run the same command again.",
+    )
+    r.add_argument("source", type=Path, help="a complete dataset")
+    r.add_argument("--out", type=Path, required=True, help="the new dataset's folder")
+    r.add_argument("--renderer", required=True, choices=RENDERERS)
+    r.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    r.add_argument("--no-progress", action="store_true")
+    r.set_defaults(handler=_rerender)
     return dsub
 
 
@@ -129,6 +143,28 @@ def _inspect(args: argparse.Namespace) -> int:
     report = inspect_dataset(dataset, require_writable_dir(out))
     print(report["text"])
     print(f"\nwrote {report['histogram']} and {report['samples']}")
+    return 0
+
+
+def _rerender(args: argparse.Namespace) -> int:
+    from sim_harness.dataset.rerender import rerender
+
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    require_writable_dir(args.out)
+    dataset = rerender(
+        args.source,
+        args.out,
+        args.renderer,
+        workers=args.workers,
+        progress=not args.no_progress,
+        command=command_line(),
+    )
+    counts = dataset.manifest["counts"]
+    print(
+        f"wrote {args.out} ({args.renderer}): train {counts['train']}, val {counts['val']}, "
+        f"test {counts['test']} samples"
+    )
     return 0
 
 

@@ -3,6 +3,8 @@
 - `pybullet`: `sim_harness.sim.render.PyBulletRenderer` (TinyRenderer, one call per face).
 - `raycast`: `sim_harness.sim.raycast.RaycastRenderer` (all agents' faces in one numpy pass; the
   same images to within a pixel or two per drone: benchmarks/render_fidelity.py).
+- `raycast-aa`: the same, each pixel the mean of a 4 x 4 grid of drone samples (area-averaged, as
+  a camera sensor integrates a pixel; far drones no longer vanish between the rays).
 
 Datasets record the renderer that made their images (manifest `renderer`), exported models copy it
 into their metadata (`dataset.renderer`), and a CNN flight with another renderer logs a warning.
@@ -20,7 +22,8 @@ from sim_harness.sim.render import Renderer
 
 log = logging.getLogger(__name__)
 
-RENDERERS: tuple[str, ...] = ("pybullet", "raycast")
+RENDERERS: tuple[str, ...] = ("pybullet", "raycast", "raycast-aa")
+AA_SUPERSAMPLE = 4  # raycast-aa: drone samples per pixel side
 DEFAULT_RENDERER = "pybullet"
 
 
@@ -34,10 +37,10 @@ def require_renderer(name: str, field: str = "renderer") -> str:
 def make_renderer(name: str = DEFAULT_RENDERER) -> Renderer:
     """A new renderer of that name (pybullet's is imported only when asked for)."""
     require_renderer(name)
-    if name == "raycast":
+    if name in ("raycast", "raycast-aa"):
         from sim_harness.sim.raycast import RaycastRenderer
 
-        return RaycastRenderer()
+        return RaycastRenderer(supersample=AA_SUPERSAMPLE if name == "raycast-aa" else 1)
     from sim_harness.sim.render import PyBulletRenderer
 
     return PyBulletRenderer()

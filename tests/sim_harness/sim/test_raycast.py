@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from companion.camera.layout import FACE_NAMES, FOV_DEG, split
+from companion.errors import ConfigError
 from companion.frames import quat_from_euler_zyx, quat_to_rotmat
 from sim_harness.sim.drone_solid import drone_solid
 from sim_harness.sim.quad_body import QuadGeometry, quad_mesh
@@ -117,6 +118,52 @@ def test_deterministic_and_batched_equals_one_by_one(world) -> None:
             np.testing.assert_array_equal(
                 renderer.render(w5, pos, q, [agent])[0], all_at_once[agent]
             )
+
+
+def test_area_averaging_keeps_a_far_drone_that_single_rays_lose(world) -> None:
+    # A drone 6 m behind, thinner than a pixel: one ray per pixel misses it in some frames,
+    # the 4 x 4 average never; and what it adds to the image (its summed gray change) is on
+    # average the same, it is only spread over the pixels it partly covers instead of dropped.
+    rng = np.random.default_rng(3)
+    offsets = [np.array([-6.0, *rng.uniform(-1.5, 1.5, 2)]) for _ in range(24)]
+    single, averaged = RaycastRenderer(), RaycastRenderer(supersample=4)
+    q = np.stack([LEVEL, LEVEL])
+    mass = {}
+    for name, renderer in (("single", single), ("averaged", averaged)):
+        gone = renderer.render(world, np.stack([OBSERVER, FAR_AWAY]), q, [0])[0].astype(int)
+        mass[name] = np.array(
+            [
+                np.abs(
+                    renderer.render(world, np.stack([OBSERVER, OBSERVER + o]), q, [0])[0] - gone
+                ).sum()
+                for o in offsets
+            ]
+        )
+    assert (mass["single"] == 0).sum() >= 4
+    assert (mass["averaged"] > 0).all()
+    assert mass["averaged"].mean() == pytest.approx(mass["single"].mean(), rel=0.35)
+
+
+def test_area_averaging_leaves_the_sky_alone_and_a_near_drone_as_it_was(world) -> None:
+    # No drone in view: the same image as one ray per pixel. A drone 0.7 m below covers ~200
+    # pixels: averaging moves only its rim, so what it adds to the image barely changes.
+    single, averaged = RaycastRenderer(), RaycastRenderer(supersample=4)
+    q = np.stack([LEVEL, LEVEL])
+    empty = single.render(world, np.stack([OBSERVER, FAR_AWAY]), q, [0])[0]
+    np.testing.assert_array_equal(
+        averaged.render(world, np.stack([OBSERVER, FAR_AWAY]), q, [0])[0], empty
+    )
+    near = np.stack([OBSERVER, OBSERVER + np.array([0.0, 0.0, -0.7])])
+    a = single.render(world, near, q, [0])[0].astype(int) - empty
+    b = averaged.render(world, near, q, [0])[0].astype(int) - empty
+    assert (a != 0).sum() >= 150
+    assert np.abs(b).sum() == pytest.approx(np.abs(a).sum(), rel=0.1)
+    assert ((a != 0) != (b != 0)).sum() <= 0.5 * (a != 0).sum()  # the rim, not the body
+
+
+def test_supersample_out_of_range_names_the_field() -> None:
+    with pytest.raises(ConfigError, match="supersample"):
+        RaycastRenderer(supersample=0)
 
 
 def test_every_mesh_vertex_lies_on_a_convex_part() -> None:

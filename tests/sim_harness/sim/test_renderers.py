@@ -21,6 +21,8 @@ from sim_harness.sim.renderers import (
 def test_names_make_their_renderers() -> None:
     assert isinstance(make_renderer("pybullet"), PyBulletRenderer)
     assert isinstance(make_renderer("raycast"), RaycastRenderer)
+    aa = make_renderer("raycast-aa")
+    assert isinstance(aa, RaycastRenderer) and aa.supersample == 4 and aa.name == "raycast-aa"
     with pytest.raises(ConfigError, match="unknown renderer 'opengl'"):
         make_renderer("opengl")
 
@@ -32,7 +34,7 @@ def test_the_option_defaults_to_pybullet_and_refuses_others() -> None:
     assert parser.parse_args(["--renderer", "raycast"]).renderer == "raycast"
     with pytest.raises(SystemExit):
         parser.parse_args(["--renderer", "opengl"])
-    assert RENDERERS == ("pybullet", "raycast")
+    assert RENDERERS == ("pybullet", "raycast", "raycast-aa")
 
 
 def test_dataset_spec_records_the_renderer_and_keeps_old_ids() -> None:
