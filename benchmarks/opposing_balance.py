@@ -1,22 +1,24 @@
-"""Why a vision flock with opposing goals drifts slower than the teacher's: the CNN's net pull.
+"""Why a vision flock with opposing goals drifts slower than the teacher's: where it settles.
 
     python benchmarks/opposing_balance.py --model models/swarm_cnn.pt [--seeds 900-903] \
         [--settle 10] [--renderer pybullet]
 
-With opposing goals (5 agents to one point, 4 to the opposite one) the teacher's flock drifts
-towards the majority's goal at k_mig (5 - 4) / 9 = 0.111 m/s: separation and cohesion are pairwise
-antisymmetric, so the nine Reynolds commands sum to zero and only the migration terms move the
-centroid. The CNN's commands carry no such guarantee. Whatever they sum to, divided by N, is added
-to the drift; a slow drift is what sinks the order parameter (the agents' small velocities point
-every way around it).
+With opposing goals (5 agents to one point, 4 to the opposite one) a settled flock moves as one
+body at a drift d along the majority's goal direction u, so each drone's Reynolds command along u
+is fixed by d: d - k_mig for the majority's drones (their migration term is +k_mig), d + k_mig for
+the minority's. The teacher's commands sum to zero (separation and cohesion are pairwise
+antisymmetric), which gives d = k_mig (5 - 4) / 9 = 0.111 m/s. A policy settles wherever its
+answers to the two groups' views differ by 2 d: the drift is half its "count gap", how much harder
+a drone with 5 drones behind it pulls back than one with 4 behind it.
 
 Flies the CNN unfiltered on training seeds (< 1000) and, at every control step after `--settle`
 seconds, evaluates the teacher's Reynolds command at the state the CNN flew into. The CNN's own
 Reynolds command is the logged setpoint minus the agent's migration term (steps where the speed
-cap acted are left out). Per group: the mean of both along the majority's goal direction; then
-their sum over the agents (the teacher's is 0), the drift that sum costs, and the measured drift
-of the centroid along that direction. Prints a table and writes JSON (default
-benchmarks/results/opposing_balance.json). One thread; about a minute per flight.
+cap acted are left out). Per group: the mean of both along u; the count gap of both (minority
+minus the majority's magnitude: the CNN's is 2 d by the argument above, the teacher's at the same
+states what it would need); the sum over the agents (the teacher's is 0) and the measured drift.
+Prints a table and writes JSON (default benchmarks/results/opposing_balance.json). One thread;
+about a minute per flight.
 """
 
 from __future__ import annotations
@@ -38,6 +40,11 @@ from sim_harness.experiments.vision_controller import load_policy
 from sim_harness.sim.rollout import FlightLog
 
 CAP_MARGIN_MPS = 1e-6  # a setpoint this close to v_max was capped: its Reynolds part is unknown
+
+
+def _gap(along: np.ndarray, groups: np.ndarray, majority: int) -> float:
+    """Minority's mean answer along u minus the magnitude of the majority's."""
+    return float(along[:, groups != majority].mean() + along[:, groups == majority].mean())
 
 
 def balance(log: FlightLog, settle_s: float) -> dict[str, Any]:
@@ -82,7 +89,8 @@ def balance(log: FlightLog, settle_s: float) -> dict[str, Any]:
         ],
         "sum_teacher_mps": float(along_teacher.sum(axis=1).mean()),
         "sum_cnn_mps": float(along_cnn.sum(axis=1).mean()),
-        "drift_cost_mps": float(along_cnn.sum(axis=1).mean() / n),
+        "count_gap_cnn_mps": _gap(along_cnn, groups, majority),
+        "count_gap_teacher_mps": _gap(along_teacher, groups, majority),
         "drift_mps": drift,
         "teacher_drift_mps": params.k_mig * (2 * n_major - n) / n,
         "order_mean_settled": float(np.nanmean(log.order[settled])),
@@ -115,20 +123,22 @@ def main() -> None:
             print(
                 f"seed {seed}: majority {majority['cnn_along_mps']:+.3f} (teacher at the state "
                 f"{majority['teacher_along_mps']:+.3f}), minority {minority['cnn_along_mps']:+.3f}"
-                f" ({minority['teacher_along_mps']:+.3f}); sum {row['sum_cnn_mps']:+.3f} m/s, "
-                f"drift {row['drift_mps']:.3f} m/s, order {row['order_mean_settled']:.2f}",
+                f" ({minority['teacher_along_mps']:+.3f}); count gap {row['count_gap_cnn_mps']:.3f}"
+                f" ({row['count_gap_teacher_mps']:.3f}); drift {row['drift_mps']:.3f} m/s, order "
+                f"{row['order_mean_settled']:.2f}",
                 flush=True,
             )
     teacher_drift = rows[0]["teacher_drift_mps"]
     summary = {
         "teacher_drift_mps": teacher_drift,
         "drift_median_mps": statistics.median(r["drift_mps"] for r in rows),
-        "drift_cost_median_mps": statistics.median(r["drift_cost_mps"] for r in rows),
+        "count_gap_cnn_median_mps": statistics.median(r["count_gap_cnn_mps"] for r in rows),
         "order_settled_mean": statistics.fmean(r["order_mean_settled"] for r in rows),
     }
     print(
         f"median drift {summary['drift_median_mps']:.3f} m/s (teacher {teacher_drift:.3f}); "
-        f"the CNN's net pull costs {summary['drift_cost_median_mps']:+.3f} m/s of it"
+        f"the CNN's count gap {summary['count_gap_cnn_median_mps']:.3f} m/s "
+        f"(teacher {2 * teacher_drift:.3f})"
     )
     report = {
         "benchmark": "opposing_balance",
