@@ -37,7 +37,7 @@ from companion.camera.layout import FACE_SIZE_PX, FACES
 from companion.frames import quat_from_euler_zyx, quat_to_rotmat
 from sim_harness.sim.drone_solid import DroneSolid
 from sim_harness.sim.quad_body import QuadGeometry, quad_mesh
-from sim_harness.sim.raycast import RaycastRenderer
+from sim_harness.sim.raycast import TINYRENDERER_SAMPLE_PX, RaycastRenderer, pixel_rays_camera
 from sim_harness.sim.render import camera_poses
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
 
@@ -125,7 +125,7 @@ def time_warp(pos: np.ndarray, q: np.ndarray, repeats: int) -> dict[str, Any]:
             depth[i] = -1.0
 
     eyes, _, _ = camera_poses(pos, q)
-    rays = RaycastRenderer()._rays_cam.reshape(-1, 3)
+    rays = pixel_rays_camera(TINYRENDERER_SAMPLE_PX).reshape(-1, 3)
     bases = np.array(
         [np.column_stack([f.right_body_flu, f.up_body_flu, f.axis_body_flu]) for f in FACES]
     )

@@ -163,7 +163,7 @@ class RaycastRenderer:
         else:
             offsets = [sample_offset_px]
         self._samples = [(o, pixel_rays_camera(o).reshape(-1, 3)) for o in offsets]
-        self.sample_offset_px, self._rays_cam = self._samples[0]
+        self.sample_offset_px = sample_offset_px
         self._bases = _face_bases()
         self._solid: tuple[QuadGeometry, DroneSolid] | None = None
         self._buf: tuple[NDArray[Any], ...] | None = None
@@ -208,17 +208,24 @@ class RaycastRenderer:
             flat[pixel] = gray
         else:
             change = np.zeros_like(flat)  # summed over the samples: drone gray - environment
-            for offset, rays in self._samples:
-                self.sample_offset_px, self._rays_cam = offset, rays
-                pixel, gray = self.drone_pixels(pos, rot, chosen, solid)
+            for sample in self._samples:
+                pixel, gray = self.drone_pixels(pos, rot, chosen, solid, sample)
                 change[pixel] += gray - flat[pixel]  # one nearest drone per pixel and sample
             flat += change / len(self._samples)
         return stitch(np.clip(np.rint(out), 0, 255).astype(np.uint8))
 
     def drone_pixels(
-        self, pos: FloatArray, rot: FloatArray, chosen: NDArray[np.intp], solid: DroneSolid
+        self,
+        pos: FloatArray,
+        rot: FloatArray,
+        chosen: NDArray[np.intp],
+        solid: DroneSolid,
+        sample: tuple[tuple[float, float], FloatArray] | None = None,
     ) -> tuple[NDArray[np.intp], FloatArray]:
-        """Flat indices into (K, 6, 64, 64) of pixels where a drone is nearest, and their grays."""
+        """Flat indices into (K, 6, 64, 64) of pixels where a drone is nearest, and their grays.
+
+        `sample`: (offset in the pixel, its rays (64 * 64, 3)); default the renderer's first."""
+        offset, rays_cam = sample or self._samples[0]
         n = len(pos)
         size = FACE_SIZE_PX
         # Camera frames in the world: (K, 6, 3, 3), columns right, up, axis; eyes (K, 6, 3).
@@ -241,7 +248,7 @@ class RaycastRenderer:
             root = np.sqrt(np.maximum(c * c + zz, 0.0)) * r
             box[2 * i] = np.where(safe, (c * z - root) / zz, -np.inf)
             box[2 * i + 1] = np.where(safe, (c * z + root) / zz, np.inf)
-        dx, dy = self.sample_offset_px
+        dx, dy = offset
         col0 = np.ceil((box[0] / half + 1.0) * size / 2 - dx)
         col1 = np.floor((box[1] / half + 1.0) * size / 2 - dx)
         row0 = np.ceil((1.0 - box[3] / half) * size / 2 - dy)
@@ -263,22 +270,22 @@ class RaycastRenderer:
             depth, owner, part, plane, touched = self._buffers(len(chosen) * len(FACES) * size**2)
             n_hit = _kernels.cast_drones(
                 centre, boxes, cam_to_body, origin, (kk * len(FACES) + ff) * size * size,
-                self._rays_cam, size, half, r, *self.sample_offset_px, self.near_m, self.far_m,
+                rays_cam, size, half, r, *offset, self.near_m, self.far_m,
                 solid.normal, solid.offset, np.any(solid.normal != 0.0, axis=2).sum(axis=1),
                 solid.part_centre, solid.part_radius_m, depth, owner, part, plane, touched,
             )  # fmt: skip
             flat = touched[:n_hit].copy()
             hit_t, t = depth[flat], owner[flat]
             depth[flat], owner[flat] = np.inf, -1  # the buffers are clean for the next call
-            d = np.einsum("mjc,mc->mj", cam_to_body[t], self._rays_cam[flat % (size * size)])
+            d = np.einsum("mjc,mc->mj", cam_to_body[t], rays_cam[flat % (size * size)])
             hit_body = origin[t] + hit_t[:, None] * d
             return flat, self._shade(hit_body, part[flat], plane[flat], rot[jj[t]], solid)
-        which, pix = _sphere_pixels(centre, boxes, r, self.sample_offset_px)
-        ray = self._rays_cam[pix]
+        which, pix = _sphere_pixels(centre, boxes, r, offset)
+        ray = rays_cam[pix]
         o = origin[which]
         d = (cam_to_body[which] * ray[:, None, :]).sum(axis=2)
         t_hit, part, plane = self._intersect(o, d, solid)
-        cos_axis = self._rays_cam[pix, 2]
+        cos_axis = rays_cam[pix, 2]
         depth = t_hit * cos_axis
         hit = np.isfinite(t_hit) & (depth >= self.near_m) & (depth <= self.far_m)
         which, pix, d, o = which[hit], pix[hit], d[hit], o[hit]
