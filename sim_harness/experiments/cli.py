@@ -37,7 +37,7 @@ from sim_harness.experiments.suites import (
 )
 from sim_harness.sim.executor import add_cluster_options, cluster_choice
 from sim_harness.sim.out_dir import require_writable_dir
-from sim_harness.sim.renderers import add_renderer_option
+from sim_harness.sim.renderers import add_renderer_option, renderer_of_model
 from sim_harness.sim.world import SimRates
 
 if TYPE_CHECKING:
@@ -93,7 +93,7 @@ def _add_common_options(p: argparse.ArgumentParser, default_out: Path, seeds_hel
         "--duration", type=float, default=None, help="cut every flight at this many seconds"
     )
     p.add_argument("--no-gradcam", action="store_true", help="skip the Grad-CAM strip")
-    add_renderer_option(p)
+    add_renderer_option(p, follows_model=True)
     p.add_argument("--quiet", action="store_true", help="no line per flight")
     p.add_argument(
         "--no-progress",
@@ -190,13 +190,17 @@ def _run(
         workers=1 if args.workers is None else args.workers,
         rates=SimRates(),
         duration_s=args.duration,
-        renderer=args.renderer,
+        renderer=args.renderer or renderer_of_model(args.model),
         experiments=getattr(args, "experiments", None),
         output_jitter_mps=getattr(args, "output_jitter", 0.0),
     )
     require_writable_dir(args.out)
     n_flights = 2 * len(config.experiment_list) * len(config.seeds)
-    print(f"{suite}: {n_flights} flights (teacher and CNN, seeds {config.seeds[0]}..)", flush=True)
+    print(
+        f"{suite}: {n_flights} flights (teacher and CNN, seeds {config.seeds[0]}..; "
+        f"{config.renderer} images)",
+        flush=True,
+    )
 
     def progress(record: RunRecord, done: int, total: int) -> None:
         if not args.quiet:
@@ -255,21 +259,23 @@ def add_aggregate_command(dsub: Any) -> None:
     )
     a.add_argument("--workers", type=int, default=None, help="flights in parallel (default 1)")
     a.add_argument("--no-progress", action="store_true")
-    add_renderer_option(a)
+    add_renderer_option(a, follows_model=True)
     add_cluster_options(a)
     a.set_defaults(handler=_aggregate)
 
 
 def _aggregate(args: argparse.Namespace) -> int:
     cluster = cluster_choice(args)
+    model = require_model(args.model or SHIPPED_MODEL_PATH)
     config = AggregateConfig(
-        model_path=require_model(args.model or SHIPPED_MODEL_PATH),
+        model_path=model,
         runs=args.runs,
         experiments=tuple(e.strip() for e in args.experiments.split(",") if e.strip()),
         seed_base=args.seed_base,
         workers=1 if args.workers is None else args.workers,
         rules=dataclasses.replace(
-            default_rules(args.dispersion_m, args.max_run_s), renderer=args.renderer
+            default_rules(args.dispersion_m, args.max_run_s),
+            renderer=args.renderer or renderer_of_model(model),
         ),
     )
     require_writable_dir(args.out)

@@ -267,7 +267,8 @@ def write_report(
         f"- Seeds: {seeds[0]}..{seeds[-1]} ({len(seeds)} per experiment and controller; "
         "evaluation seeds >= 1000, never used for training)",
         f"- CNN low-pass filter: {'off' if cutoff is None else f'{cutoff:g} Hz cut-off'}; "
-        f"physics {cfg.rates.physics_hz} Hz, control {cfg.rates.control_hz} Hz"
+        f"physics {cfg.rates.physics_hz} Hz, control {cfg.rates.control_hz} Hz; "
+        f"CNN images drawn by the `{cfg.renderer}` renderer"
         + ("" if cfg.duration_s is None else f"; every flight cut at {cfg.duration_s:g} s")
         + (
             f"; **sensitivity check: seeded noise of up to {cfg.output_jitter_mps:g} m/s added "

@@ -21,7 +21,12 @@ from companion.flocking import FlockingParams
 from sim_harness.experiments.suites import SHIPPED_LOW_PASS_HZ
 from sim_harness.hil.plans import PLANS_DIR
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
-from sim_harness.sim.renderers import DEFAULT_RENDERER, add_renderer_option, make_renderer
+from sim_harness.sim.renderers import (
+    DEFAULT_RENDERER,
+    add_renderer_option,
+    make_renderer,
+    renderer_of_model,
+)
 from sim_harness.sim.scenarios import SCENARIOS, ScenarioConfig, build_scenario
 
 
@@ -61,7 +66,7 @@ def add_hil_commands(sub: Any) -> None:
         help="override a key of every drone's companion.toml (TOML value), e.g. "
         "daemon.tick_on_frames=false; repeatable",
     )
-    add_renderer_option(p)
+    add_renderer_option(p, follows_model=True)
     p.set_defaults(handler=_hil)
 
 
@@ -124,7 +129,7 @@ def _hil(args: argparse.Namespace) -> int:
         args.compare,
         overrides,
         args.autopilot,
-        args.renderer,
+        args.renderer or renderer_of_model(args.model),
     )
     s = doc["summary"]
     print(

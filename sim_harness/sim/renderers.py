@@ -7,14 +7,18 @@
   a camera sensor integrates a pixel; far drones no longer vanish between the rays).
 
 Datasets record the renderer that made their images (manifest `renderer`), exported models copy it
-into their metadata (`dataset.renderer`), and a CNN flight with another renderer logs a warning.
+into their metadata (`dataset.renderer`). Commands that fly a CNN (`experiments`, `dataset
+aggregate`, `hil`) draw with that same renderer unless told otherwise (`renderer_of_model`); a CNN
+flight with another renderer logs a warning.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from sim_harness.errors import ConfigError
@@ -46,14 +50,18 @@ def make_renderer(name: str = DEFAULT_RENDERER) -> Renderer:
     return PyBulletRenderer()
 
 
-def add_renderer_option(parser: argparse.ArgumentParser) -> None:
-    """`--renderer pybullet|raycast`, the same on every command that renders."""
+def add_renderer_option(parser: argparse.ArgumentParser, follows_model: bool = False) -> None:
+    """`--renderer NAME`, the same on every command that renders. `follows_model`: a command
+    that flies a CNN; its default (None) is the renderer the model was trained on
+    (`renderer_of_model`)."""
+    default = "the one the model's training images were drawn with" if follows_model else None
     parser.add_argument(
         "--renderer",
-        default=DEFAULT_RENDERER,
+        default=None if follows_model else DEFAULT_RENDERER,
         choices=RENDERERS,
-        help=f"what draws the camera images (default {DEFAULT_RENDERER}); raycast renders all "
-        "drones' views in one batched pass, several times faster",
+        help=f"what draws the camera images (default {default or DEFAULT_RENDERER}); raycast "
+        "renders all drones' views in one batched pass, several times faster; raycast-aa "
+        "averages 4 x 4 drone samples per pixel (far drones stay visible)",
     )
 
 
@@ -62,6 +70,17 @@ def model_renderer(metadata: Mapping[str, Any]) -> str:
     pybullet, the only one there was)."""
     dataset = metadata.get("dataset") or {}
     return str(dataset.get("renderer", DEFAULT_RENDERER))
+
+
+def renderer_of_model(model_path: str | Path) -> str:
+    """The renderer of a policy file's training images, read from its sidecar `NAME.json`
+    (no torch load); pybullet when the sidecar is missing or records none (loading the model
+    refuses a file without its sidecar later, with the reason)."""
+    try:
+        metadata = json.loads(Path(model_path).with_suffix(".json").read_text())["metadata"]
+        return model_renderer(metadata)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return DEFAULT_RENDERER
 
 
 def warn_if_trained_elsewhere(metadata: Mapping[str, Any], renderer: str) -> bool:

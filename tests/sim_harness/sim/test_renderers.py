@@ -1,6 +1,7 @@
 """Choosing the renderer: by name, recorded with datasets, a warning on a mismatch."""
 
 import argparse
+import json
 import logging
 
 import pytest
@@ -14,6 +15,7 @@ from sim_harness.sim.renderers import (
     add_renderer_option,
     make_renderer,
     model_renderer,
+    renderer_of_model,
     warn_if_trained_elsewhere,
 )
 
@@ -35,6 +37,26 @@ def test_the_option_defaults_to_pybullet_and_refuses_others() -> None:
     with pytest.raises(SystemExit):
         parser.parse_args(["--renderer", "opengl"])
     assert RENDERERS == ("pybullet", "raycast", "raycast-aa")
+
+
+def test_a_command_that_flies_a_model_leaves_the_choice_to_the_model() -> None:
+    parser = argparse.ArgumentParser()
+    add_renderer_option(parser, follows_model=True)
+    assert parser.parse_args([]).renderer is None  # resolved with renderer_of_model
+    assert parser.parse_args(["--renderer", "raycast-aa"]).renderer == "raycast-aa"
+
+
+def test_the_model_file_names_its_training_renderer(tmp_path) -> None:
+    model = tmp_path / "policy.pt"
+    assert renderer_of_model(model) == "pybullet"  # no sidecar: loading refuses it later
+    sidecar = tmp_path / "policy.json"
+    sidecar.write_text(json.dumps({"sha256": "0", "metadata": {"dataset": {"id": "x"}}}))
+    assert renderer_of_model(model) == "pybullet"  # exported before datasets recorded it
+    metadata = {"dataset": {"id": "x", "renderer": "raycast-aa"}}
+    sidecar.write_text(json.dumps({"sha256": "0", "metadata": metadata}))
+    assert renderer_of_model(model) == "raycast-aa"
+    sidecar.write_text("{not json")
+    assert renderer_of_model(model) == "pybullet"
 
 
 def test_dataset_spec_records_the_renderer_and_keeps_old_ids() -> None:
