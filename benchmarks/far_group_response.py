@@ -1,7 +1,7 @@
 """How a policy's command answers a group of drones behind it, by the group's distance and size.
 
     python benchmarks/far_group_response.py --model models/swarm_cnn.pt \
-        [--distances 2,3,4,5,6,7] [--draws 40] [--seed 0] [--renderer pybullet]
+        [--distances 2,3,4,5,6,7] [--draws 40] [--seed 0] [--renderer NAME (default: the model's)]
 
 The opposing-goals flock holds one drone between two pulls: its own group around it and the
 other group behind it, pulling back along the line between the goals
@@ -30,7 +30,7 @@ from cnn_latency import RESULTS, machine, write_report
 
 from companion.flocking import FlockingParams, flocking_command
 from sim_harness.experiments.vision_controller import load_policy
-from sim_harness.sim.renderers import RENDERERS, make_renderer
+from sim_harness.sim.renderers import add_renderer_option, make_renderer, renderer_of_model
 from sim_harness.sim.world import World
 
 VIEWS = ((4, 4), (3, 5))  # (own group around the observer, drones behind it)
@@ -63,9 +63,10 @@ def main() -> None:
     parser.add_argument("--distances", default="2,3,4,5,6,7", help="far group's distance (m)")
     parser.add_argument("--draws", type=int, default=40, help="random layouts per distance")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--renderer", default="pybullet", choices=RENDERERS)
+    add_renderer_option(parser, follows_model=True)
     parser.add_argument("--out", type=Path, default=RESULTS / "far_group_response.json")
     args = parser.parse_args()
+    args.renderer = args.renderer or renderer_of_model(args.model)  # as the bar
     distances = [float(d) for d in args.distances.split(",")]
     params = FlockingParams()
     renderer = make_renderer(args.renderer)

@@ -1,7 +1,8 @@
 """Choosing the CNN's low-pass cut-off on training seeds (never on the bar's evaluation seeds).
 
     python benchmarks/low_pass_tuning.py --model models/swarm_cnn.pt --cutoffs off,2,1,0.5 \
-        [--experiments opposing,common] [--seeds 900-903] [--renderer pybullet] [--duration S]
+        [--experiments opposing,common] [--seeds 900-903] [--duration S]
+        [--renderer NAME (default: the model's)]
 
 Flies each experiment with the CNN once per seed and cut-off (and the teacher once per seed), all
 on scenario seeds below 1000, which `swarm-sim experiments` refuses so that the bar is never tuned
@@ -26,6 +27,7 @@ from companion.errors import ConfigError
 from sim_harness.experiments.runner import Job, fly_job
 from sim_harness.experiments.suites import EVAL_SEED_BASE, SuiteConfig
 from sim_harness.experiments.vision_controller import load_policy
+from sim_harness.sim.renderers import add_renderer_option, renderer_of_model
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -69,10 +71,11 @@ def main() -> None:
     parser.add_argument("--cutoffs", default="off,2,1,0.5", help="Hz, comma-separated; off: none")
     parser.add_argument("--experiments", default="opposing,common")
     parser.add_argument("--seeds", default="900-903", help="training-range seeds (< 1000)")
-    parser.add_argument("--renderer", default="pybullet", help="default pybullet, as the bar")
+    add_renderer_option(parser, follows_model=True)
     parser.add_argument("--duration", type=float, default=None, help="cut each flight (s)")
     parser.add_argument("--out", type=Path, default=RESULTS / "low_pass_tuning.json")
     args = parser.parse_args()
+    args.renderer = args.renderer or renderer_of_model(args.model)  # as the bar
     seeds = training_seeds(args.seeds)
     cutoffs = [_cutoff(c) for c in args.cutoffs.split(",")]
     experiments = args.experiments.split(",")

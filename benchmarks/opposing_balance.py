@@ -1,7 +1,7 @@
 """Why a vision flock with opposing goals drifts slower than the teacher's: where it settles.
 
     python benchmarks/opposing_balance.py --model models/swarm_cnn.pt [--seeds 900-903] \
-        [--settle 10] [--renderer pybullet]
+        [--settle 10] [--renderer NAME (default: the model's)]
 
 With opposing goals (5 agents to one point, 4 to the opposite one) a settled flock moves as one
 body at a drift d along the majority's goal direction u, so each drone's Reynolds command along u
@@ -37,6 +37,7 @@ from companion.flocking import flocking_command
 from sim_harness.experiments.runner import Job, fly_job
 from sim_harness.experiments.suites import SuiteConfig
 from sim_harness.experiments.vision_controller import load_policy
+from sim_harness.sim.renderers import add_renderer_option, renderer_of_model
 from sim_harness.sim.rollout import FlightLog
 
 CAP_MARGIN_MPS = 1e-6  # a setpoint this close to v_max was capped: its Reynolds part is unknown
@@ -102,9 +103,10 @@ def main() -> None:
     parser.add_argument("--model", type=Path, required=True, help="policy file (.pt)")
     parser.add_argument("--seeds", default="900-903", help="training-range seeds (< 1000)")
     parser.add_argument("--settle", type=float, default=10.0, help="skip the start (s)")
-    parser.add_argument("--renderer", default="pybullet", help="default pybullet, as the bar")
+    add_renderer_option(parser, follows_model=True)
     parser.add_argument("--out", type=Path, default=RESULTS / "opposing_balance.json")
     args = parser.parse_args()
+    args.renderer = args.renderer or renderer_of_model(args.model)  # as the bar
     seeds = training_seeds(args.seeds)
     config = SuiteConfig(
         suite="bar",

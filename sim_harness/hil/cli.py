@@ -129,7 +129,7 @@ def _hil(args: argparse.Namespace) -> int:
         args.compare,
         overrides,
         args.autopilot,
-        args.renderer or renderer_of_model(args.model),
+        args.renderer,
     )
     s = doc["summary"]
     print(
@@ -156,16 +156,18 @@ def fly_hil(
     compare: bool = False,
     overrides: dict[str, dict[str, Any]] | None = None,
     autopilot: str = "emulator",
-    renderer: str = DEFAULT_RENDERER,
+    renderer: str | None = None,
 ) -> dict[str, Any]:
     """Fly the HIL swarm (and the in-process CNN if `compare`), write `out`, return hil.json.
 
     `autopilot`: "emulator" (our PX4 emulator per drone on the shared pybullet vehicle) or
-    "px4-sitl" (real PX4 SITL per drone, `sim_harness.hil.px4_swarm`)."""
+    "px4-sitl" (real PX4 SITL per drone, `sim_harness.hil.px4_swarm`). `renderer`: what draws
+    the camera images; None: the one the model was trained on."""
     from sim_harness.hil.results import write_results
     from sim_harness.hil.swarm import HilConfig, HilSwarm
 
     scenario = build_scenario(config)
+    renderer = renderer or renderer_of_model(model)
 
     def say(message: str) -> None:
         print(f"hil: {message}", flush=True)
