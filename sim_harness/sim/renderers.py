@@ -76,8 +76,9 @@ def renderer_of_model(model_path: str | Path) -> str:
     """The renderer of a policy file's training images, read from its sidecar `NAME.json`
     (no torch load); pybullet when the sidecar is missing or records none (loading the model
     refuses a file without its sidecar later, with the reason)."""
-    try:
-        metadata = json.loads(Path(model_path).with_suffix(".json").read_text())["metadata"]
+    sidecar = Path(model_path).with_suffix(".json")  # companion.model_file.sidecar_path's rule;
+    try:  # that module imports torch, which the CLIs load only once they fly
+        metadata = json.loads(sidecar.read_text())["metadata"]
         return model_renderer(metadata)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return DEFAULT_RENDERER
