@@ -85,14 +85,38 @@ def subset(split: SplitArrays, limit: int | None, seed: int, ram_max_bytes: int)
     )
 
 
-def shuffled_batches(n: int, batch_size: int, seed: int, epoch: int) -> list[NDArray[np.int64]]:
-    """Index arrays covering `range(n)` once in a random order fixed by `(seed, epoch)`.
+REPEAT_COLUMN = "repeat"  # optional per-sample meta column: how often an epoch shows the sample
+
+
+def epoch_rows(split: SplitArrays) -> NDArray[np.int64]:
+    """The sample indices one epoch covers: each sample once, or `meta["repeat"]` times."""
+    n = split.n_samples
+    counts = split.meta.get(REPEAT_COLUMN)
+    if counts is None:
+        return np.arange(n, dtype=np.int64)
+    return np.repeat(np.arange(n, dtype=np.int64), np.asarray(counts, dtype=np.int64))
+
+
+def shuffled_batches(
+    n: int, batch_size: int, seed: int, epoch: int, rows: NDArray[np.int64] | None = None
+) -> list[NDArray[np.int64]]:
+    """Index arrays covering `range(n)` (or the multiset `rows` of n entries) once in a random
+    order fixed by `(seed, epoch)`.
 
     Each batch is sorted (memmap locality); the last one may be smaller. A fixed per-epoch order
     makes a resumed run see the same batches as an uninterrupted one.
     """
     order = np.random.default_rng([seed, epoch]).permutation(n)
+    if rows is not None:
+        order = rows[order]
     return [np.sort(order[i : i + batch_size]) for i in range(0, n, batch_size)]
+
+
+def with_repeats(split: InMemorySplit, counts: NDArray[np.int64]) -> InMemorySplit:
+    """`split` with a per-sample repeat count (see `epoch_rows`)."""
+    if counts.shape != (split.n_samples,) or (counts < 1).any():
+        raise ValueError(f"need one count >= 1 per sample ({split.n_samples})")
+    return InMemorySplit(split.images, split.targets, {**split.meta, REPEAT_COLUMN: counts})
 
 
 def sequential_batches(n: int, batch_size: int) -> list[slice]:

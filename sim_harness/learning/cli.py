@@ -60,7 +60,8 @@ def add_learning_commands(sub: Any) -> None:
         action="append",
         default=[],
         metavar="DIR",
-        help="add this aggregated dataset's training split (repeatable; loads the splits in RAM)",
+        help="add this aggregated dataset's training split (repeatable; loads the splits in RAM); "
+        "a folder given k times is shown k times per epoch",
     )
     t.add_argument(
         "--init-from",

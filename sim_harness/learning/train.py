@@ -35,10 +35,12 @@ import torch
 from sim_harness.learning.batches import (
     SplitArrays,
     concat_splits,
+    epoch_rows,
     load_batch,
     prefetch,
     shuffled_batches,
     subset,
+    with_repeats,
 )
 from sim_harness.learning.checkpoint import (
     BEST_NAME,
@@ -185,13 +187,21 @@ def train(config: TrainConfig) -> TrainResult:
     dataset = open_dataset(config.dataset)
     train_split: SplitArrays = dataset.split("train")
     if config.extra_train:
-        extras = [open_dataset(root) for root in config.extra_train]
-        train_split = concat_splits([train_split, *(extra.split("train") for extra in extras)])
+        # a folder named k times is loaded once and shown k times per epoch
+        roots = list(dict.fromkeys(config.extra_train))
+        parts = [train_split, *(open_dataset(root).split("train") for root in roots)]
+        joined = concat_splits(parts)
+        times = [1] + [config.extra_train.count(root) for root in roots]
+        counts = np.repeat(times, [part.n_samples for part in parts]).astype(np.int64)
+        train_split = with_repeats(joined, counts) if max(times) > 1 else joined
         log.info(
-            "training on %s plus %s: %d samples",
+            "training on %s plus %s: %d samples, %d per epoch",
             config.dataset,
-            ", ".join(str(r) for r in config.extra_train),
+            ", ".join(
+                f"{r} (x{k})" if k > 1 else str(r) for r, k in zip(roots, times[1:], strict=True)
+            ),
             train_split.n_samples,
+            int(counts.sum()),
         )
     return train_on(config, dataset.manifest, train_split, dataset.split("val"))
 
@@ -263,6 +273,7 @@ def train_on(
         torch.backends.cudnn.benchmark = True
     ram_max = int(config.ram_max_gib * 2**30)
     train_data = subset(train_split, config.limit_train, config.seed, ram_max)
+    rows = epoch_rows(train_data)
     val_data = subset(val_split, config.limit_val, config.seed + 1, ram_max)
     out = config.out_dir
     out.mkdir(parents=True, exist_ok=True)
@@ -279,6 +290,7 @@ def train_on(
         "command": config.command,
         "wall_time_s": 0.0,
         "train_samples": train_data.n_samples,
+        "epoch_samples": len(rows),
         "model_config": {
             "pixel_mean": float(manifest["pixel_mean"]),
             "pixel_std": float(manifest["pixel_std"]),
@@ -302,7 +314,7 @@ def train_on(
     while not plateau.stop and epoch < config.max_epochs:
         epoch += 1
         epoch_start = time.perf_counter()
-        batches = shuffled_batches(train_data.n_samples, config.batch_size, config.seed, epoch)
+        batches = shuffled_batches(len(rows), config.batch_size, config.seed, epoch, rows)
         cosine = config.lr_schedule == "cosine"
         lr_at = _cosine_lr_at(config, epoch, len(batches)) if cosine else None
         train_loss, samples_per_s, clipped = _train_epoch(

@@ -44,7 +44,8 @@ class TrainConfig:
     resume: bool = False
     command: str = ""  # the command line that started the run, recorded in checkpoints
     # aggregated datasets (`swarm-sim dataset aggregate`) whose training splits join `dataset`'s;
-    # validation stays on `dataset`'s own split, so runs stay comparable
+    # validation stays on `dataset`'s own split, so runs stay comparable; a folder listed k times
+    # is loaded once and its samples shown k times per epoch (weighting a targeted round)
     extra_train: tuple[Path, ...] = ()
     init_from: Path | None = None  # start from these weights (checkpoint or policy file)
     # show each training sample in a random view of this symmetry group of the camera rig, label

@@ -142,6 +142,26 @@ def test_fine_tuning_starts_from_the_given_weights_and_adds_the_aggregated_split
     assert state["train_samples"] == n_base + n_extra
 
 
+def test_an_aggregated_folder_named_twice_is_loaded_once_and_shown_twice_per_epoch(
+    aggregated, smoke_dataset, tmp_path
+) -> None:
+    root, _ = aggregated
+    config = TrainConfig(
+        dataset=smoke_dataset,
+        out_dir=tmp_path / "weighted",
+        max_epochs=1,
+        batch_size=32,
+        limit_val=32,
+        progress=False,
+        extra_train=(root, root),
+    )
+    state = load_checkpoint(train(config).out_dir / "last.ckpt")
+    n_base = open_dataset(smoke_dataset).split("train").n_samples
+    n_extra = open_dataset(root).split("train").n_samples
+    assert state["train_samples"] == n_base + n_extra
+    assert state["epoch_samples"] == n_base + 2 * n_extra
+
+
 def test_init_from_and_resume_exclude_each_other(smoke_dataset, tmp_path) -> None:
     with pytest.raises(ConfigError, match="init_from"):
         TrainConfig(smoke_dataset, tmp_path, resume=True, init_from=tmp_path / "x.pt")

@@ -9,7 +9,14 @@ import torch
 
 from companion.errors import ConfigError
 from sim_harness.dataset.store import open_dataset
-from sim_harness.learning.batches import InMemorySplit, prefetch, shuffled_batches, subset
+from sim_harness.learning.batches import (
+    InMemorySplit,
+    epoch_rows,
+    prefetch,
+    shuffled_batches,
+    subset,
+    with_repeats,
+)
 from sim_harness.learning.checkpoint import (
     BEST_NAME,
     LAST_NAME,
@@ -240,6 +247,18 @@ def test_batches_cover_every_sample_once_sorted_and_seeded() -> None:
     assert all(np.array_equal(a, b) for a, b in zip(batches, again, strict=True))
     other = shuffled_batches(70, 32, seed=3, epoch=3)
     assert not all(np.array_equal(a, b) for a, b in zip(batches, other, strict=True))
+
+
+def test_a_repeat_column_shows_a_sample_that_many_times_per_epoch() -> None:
+    images = np.zeros((5, 64, 384), dtype=np.uint8)
+    split = InMemorySplit(images, np.zeros((5, 3), dtype=np.float32), {})
+    assert epoch_rows(split).tolist() == [0, 1, 2, 3, 4]
+    weighted = with_repeats(split, np.array([1, 1, 3, 1, 2]))
+    rows = epoch_rows(weighted)
+    batches = shuffled_batches(len(rows), 4, seed=0, epoch=1, rows=rows)
+    assert sorted(np.concatenate(batches).tolist()) == [0, 1, 2, 2, 2, 3, 4, 4]
+    with pytest.raises(ValueError, match="count >= 1"):
+        with_repeats(split, np.array([1, 0, 1, 1, 1]))
 
 
 def test_a_limited_split_is_a_fixed_subset_in_ram(smoke_dataset) -> None:
