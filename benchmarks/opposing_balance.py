@@ -18,7 +18,7 @@ cap acted are left out). Per group: the mean of both along u; the count gap of b
 minus the majority's magnitude: the CNN's is 2 d by the argument above, the teacher's at the same
 states what it would need); the sum over the agents (the teacher's is 0) and the measured drift.
 And why the order parameter stays low: the centroid's speed next to the drones' motion relative
-to it (RMS per axis; the teacher's flock: 0.111 and about 0.015 m/s). Prints a table and writes
+to it (RMS per axis; the teacher's flock: 0.111 and about 0.01 m/s). Prints a table and writes
 JSON (default benchmarks/results/opposing_balance.json). One thread; about a minute per flight.
 """
 
