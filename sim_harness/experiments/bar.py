@@ -53,13 +53,20 @@ def _seconds(t: float) -> str:
     return f"{t:.1f} s" if math.isfinite(t) else "never (half or more stalled)"
 
 
-def _no_collision(label: str, cnn: list[RunRecord]) -> BarCheck:
+def _no_collision(label: str, cnn: list[RunRecord], teacher: list[RunRecord]) -> BarCheck:
+    """The CNN's verdict; the detail adds the teacher's on the same seeds, which the verdict
+    does not use (a crowded spawn can bring even the teacher's flock under 1 m)."""
     hit = [r for r in cnn if not r.summary["collision_free"]]
     lowest = min(r.summary["d_min_m"] for r in cnn)
     detail = f"{len(cnn) - len(hit)}/{len(cnn)} runs clear; lowest pair {lowest:.2f} m"
     if hit:
         closest = (f"{r.seed} ({r.summary['d_min_m']:.2f} m)" for r in hit)
         detail += "; under 1 m: " + ", ".join(closest)
+    clear = sum(bool(r.summary["collision_free"]) for r in teacher)
+    detail += (
+        f" (teacher, same seeds: {clear}/{len(teacher)} clear, lowest "
+        f"{min(r.summary['d_min_m'] for r in teacher):.2f} m)"
+    )
     return BarCheck(f"{label}: no pair under {COLLISION_M:g} m in any run", not hit, detail)
 
 
@@ -106,7 +113,7 @@ def _common(cnn: list[RunRecord], teacher: list[RunRecord]) -> list[BarCheck]:
     label = "common goal"
     lowest = min(r.summary["d_min_m"] for r in cnn)
     return [
-        _no_collision(label, cnn),
+        _no_collision(label, cnn, teacher),
         BarCheck(
             f"{label}: lowest closest pair >= {COMMON_LOWEST_PAIR_M:g} m",
             lowest >= COMMON_LOWEST_PAIR_M,
@@ -156,7 +163,7 @@ def _opposing(cnn: list[RunRecord], teacher: list[RunRecord]) -> list[BarCheck]:
 def _flock_size(label: str) -> Callable[[list[RunRecord], list[RunRecord]], list[BarCheck]]:
     def checks(cnn: list[RunRecord], teacher: list[RunRecord]) -> list[BarCheck]:
         return [
-            _no_collision(label, cnn),
+            _no_collision(label, cnn, teacher),
             _arrival(label, cnn, teacher, ARRIVAL_RATIO),
             _mean_order(label, cnn, SIZE_ORDER),
         ]
@@ -166,12 +173,12 @@ def _flock_size(label: str) -> Callable[[list[RunRecord], list[RunRecord]], list
 
 def _faster(cnn: list[RunRecord], teacher: list[RunRecord]) -> list[BarCheck]:
     label = "faster flock"
-    return [_no_collision(label, cnn), _arrival(label, cnn, teacher, ARRIVAL_RATIO)]
+    return [_no_collision(label, cnn, teacher), _arrival(label, cnn, teacher, ARRIVAL_RATIO)]
 
 
 def _no_goal(cnn: list[RunRecord], teacher: list[RunRecord]) -> list[BarCheck]:
     label = "no migration point"
-    return [_no_collision(label, cnn), _never_splits(label, cnn)]
+    return [_no_collision(label, cnn, teacher), _never_splits(label, cnn)]
 
 
 CRITERIA: dict[str, Callable[[list[RunRecord], list[RunRecord]], list[BarCheck]]] = {

@@ -100,6 +100,21 @@ def test_small_and_large_flocks_need_order_and_the_looser_arrival(tiny_log) -> N
     assert not ratio.passed and "never (half or more stalled)" in ratio.detail
 
 
+def test_a_collision_verdict_is_the_cnns_and_shows_the_teachers_on_the_same_seeds(
+    tiny_log,
+) -> None:
+    crowded = [{}] * 2 + [{"collision_free": False, "d_min_m": 0.86}] * 2  # the teacher's
+    clear = [{"d_min_m": 1.02}] * 4
+    check = bar_checks(suite(tiny_log, "n12", clear, crowded))[0]
+    assert check.passed
+    assert "4/4 runs clear; lowest pair 1.02 m (teacher, same seeds: 2/4 clear, lowest 0.86 m)" in (
+        check.detail
+    )
+    bumped = [*clear[:3], {"collision_free": False, "d_min_m": 0.95}]
+    check = bar_checks(suite(tiny_log, "n12", bumped))[0]  # the teacher's runs all clear
+    assert not check.passed and "1003 (0.95 m) (teacher, same seeds: 4/4 clear" in check.detail
+
+
 def test_faster_flock_and_no_goal_have_their_own_criteria(tiny_log) -> None:
     assert list(verdicts(suite(tiny_log, "vmax4", [{}] * 4))) == [
         "no pair under 1 m in any run",
