@@ -105,10 +105,9 @@ def _internal_motion(vel: np.ndarray) -> dict[str, float]:
     centroid's own speed: the order parameter is the alignment of headings, so it stays low while
     the internal motion is comparable to the drift, however well the flock holds together."""
     centroid = vel.mean(axis=1, keepdims=True)
-    internal = np.sqrt(((vel - centroid) ** 2).mean(axis=(0, 1)))
     return {
         "centroid_speed_mps": float(np.linalg.norm(centroid, axis=-1).mean()),
-        "internal_rms_per_axis_mps": float(np.sqrt((internal**2).mean())),
+        "internal_rms_per_axis_mps": float(np.sqrt(((vel - centroid) ** 2).mean())),
     }
 
 
