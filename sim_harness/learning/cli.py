@@ -87,6 +87,15 @@ def add_learning_commands(sub: Any) -> None:
     )
     t.add_argument("--weight-cap", type=float, default=4.0, help="largest weight (default 4)")
     t.add_argument(
+        "--weight-flock",
+        type=float,
+        default=None,
+        metavar="LAMBDA",
+        help="add the flock-sum term with this weight: per flock (one run, one time step) the "
+        "squared sum of its drones' errors in the world frame, so an error the whole flock "
+        "shares costs more; batches are drawn as whole flocks (default: off)",
+    )
+    t.add_argument(
         "--lr-schedule",
         choices=LR_SCHEDULES,
         default="plateau",
@@ -155,6 +164,7 @@ def _train(args: argparse.Namespace) -> int:
         augment=args.augment,
         weight_speed_mps=args.weight_speed,
         weight_cap=args.weight_cap,
+        weight_flock=args.weight_flock,
         lr_schedule=args.lr_schedule,
         progress=not args.no_progress,
         command=command_line(),

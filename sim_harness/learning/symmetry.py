@@ -44,6 +44,7 @@ __all__ = [
     "SymmetricPolicy",
     "View",
     "augment",
+    "augment_with_views",
     "label_matrix",
     "require_group",
     "view_image",
@@ -65,16 +66,28 @@ def augment(
 
     `images_u8` (B, 64, 384), `targets` (B, 3) body FLU; returns new tensors (same devices).
     """
+    images, labels, _ = augment_with_views(images_u8, targets, generator, group)
+    return images, labels
+
+
+def augment_with_views(
+    images_u8: torch.Tensor, targets: torch.Tensor, generator: torch.Generator, group: str = "d4"
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`augment`, also returning each sample's label matrix L (B, 3, 3): label = L @ target.
+
+    L is orthogonal: L^T maps a vector of the view's frame back to the recorded body frame.
+    """
     views = require_group(group)
     if len(views) == 1:
-        return images_u8, targets
+        eye = torch.eye(3, dtype=targets.dtype, device=targets.device)
+        return images_u8, targets, eye.expand(targets.shape[0], 3, 3)
     sources, labels = view_tables(views)
     chosen = torch.randint(0, len(views), (images_u8.shape[0],), generator=generator)
     flat = images_u8.reshape(images_u8.shape[0], -1)
     index = sources[chosen].to(flat.device)
     viewed = torch.gather(flat, 1, index).reshape(images_u8.shape)
     matrices = labels[chosen].to(targets.device, targets.dtype)
-    return viewed, torch.bmm(matrices, targets.unsqueeze(-1)).squeeze(-1)
+    return viewed, torch.bmm(matrices, targets.unsqueeze(-1)).squeeze(-1), matrices
 
 
 class SymmetricPolicy(nn.Module):

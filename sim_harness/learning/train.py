@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from sim_harness.learning.batches import (
+    InMemorySplit,
     SplitArrays,
     concat_splits,
     epoch_rows,
@@ -54,9 +55,16 @@ from sim_harness.learning.checkpoint import (
     save_checkpoint,
 )
 from sim_harness.learning.evaluate import predict
+from sim_harness.learning.flock_loss import (
+    PART_COLUMN,
+    flock_batches,
+    flock_ids,
+    flock_term,
+    world_rotations,
+)
 from sim_harness.learning.lr_schedule import cosine_lr
 from sim_harness.learning.model import DroNet, build_model, parameter_groups
-from sim_harness.learning.symmetry import augment
+from sim_harness.learning.symmetry import augment_with_views
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
 from sim_harness.sim.progress import progress_bar
 
@@ -107,7 +115,7 @@ def _train_epoch(
     model: DroNet,
     optimizer: torch.optim.Optimizer,
     split: SplitArrays,
-    batches: list[np.ndarray],
+    batches: list[Batch],
     device: torch.device,
     grad_clip_norm: float | None,
     progress: bool,
@@ -116,6 +124,7 @@ def _train_epoch(
     augment_seed: tuple[int, int] = (0, 0),
     weighting: tuple[float, float] | None = None,
     lr_at: Callable[[int], float] | None = None,
+    flock: FlockLoss | None = None,
 ) -> tuple[float, float, float]:
     """One pass over `batches`; returns (mean training loss, samples/s, fraction clipped).
 
@@ -127,18 +136,26 @@ def _train_epoch(
     `augment_seed` (the run's seed and the epoch: a resumed epoch sees the same views).
 
     `lr_at`: the lr of each batch by its index in the epoch (None: the optimizer's own).
+
+    `flock`: add the flock-sum term with this weight; `batches` are then (rows, batch-local
+    flock index) pairs of whole flocks (`flock_loss.flock_batches`).
     """
     model.train()
     pin = device.type == "cuda"
     generator = torch.Generator().manual_seed(augment_seed[0] * 1_000_003 + augment_seed[1])
 
-    def batch(rows: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    def batch(item: Batch) -> tuple[torch.Tensor, ...]:
+        rows, local = item if isinstance(item, tuple) else (item, None)
         images, targets = load_batch(split, rows)
-        if augment_group != "none":
-            images, targets = augment(images, targets, generator, augment_group)
+        images, targets, views = augment_with_views(images, targets, generator, augment_group)
+        tensors: tuple[torch.Tensor, ...] = (images, targets)
+        if flock is not None and local is not None:
+            # the error is in the view's frame: L^T back to the body, then R_world_body
+            to_world = torch.from_numpy(flock.to_world[rows]) @ views.transpose(1, 2)
+            tensors = (*tensors, to_world, torch.from_numpy(local))
         if pin:
-            images, targets = images.pin_memory(), targets.pin_memory()
-        return images, targets
+            tensors = tuple(t.pin_memory() for t in tensors)
+        return tensors
 
     total = torch.zeros((), dtype=torch.float64, device=device)
     clipped = torch.zeros((), dtype=torch.int64, device=device)
@@ -152,14 +169,18 @@ def _train_epoch(
         unit_scale=True,
         leave=False,
     ) as bar:
-        for step, (images, targets) in enumerate(prefetch(batch(rows) for rows in batches)):
-            images = images.to(device, non_blocking=True)
-            targets = targets.to(device, non_blocking=True)
+        for step, tensors in enumerate(prefetch(batch(item) for item in batches)):
+            images, targets, *flock_tensors = (t.to(device, non_blocking=True) for t in tensors)
+            pred = model(images)
             if weighting is None:
-                loss = velocity_loss(model(images), targets)
+                loss = velocity_loss(pred, targets)
             else:
                 weights = speed_weights(targets, *weighting)
-                loss = weighted_velocity_loss(model(images), targets, weights)
+                loss = weighted_velocity_loss(pred, targets, weights)
+            if flock is not None:
+                to_world, local = flock_tensors
+                term = flock_term(pred - targets, to_world, local, int(local.max().item()) + 1)
+                loss = (loss + flock.weight * term) / (1.0 + flock.weight)
             if lr_at is not None:
                 for group in optimizer.param_groups:
                     group["lr"] = lr_at(step)
@@ -191,6 +212,8 @@ def train(config: TrainConfig) -> TrainResult:
         roots = list(dict.fromkeys(config.extra_train))
         parts = [train_split, *(open_dataset(root).split("train") for root in roots)]
         joined = concat_splits(parts)
+        part = np.repeat(np.arange(len(parts)), [p.n_samples for p in parts])
+        joined = InMemorySplit(joined.images, joined.targets, {**joined.meta, PART_COLUMN: part})
         times = [1] + [config.extra_train.count(root) for root in roots]
         counts = np.repeat(times, [part.n_samples for part in parts]).astype(np.int64)
         train_split = with_repeats(joined, counts) if max(times) > 1 else joined
@@ -226,6 +249,17 @@ def make_scheduler(
         patience=config.lr_patience_epochs - 1,  # torch acts on the (patience + 1)-th bad epoch
         threshold=0.0,
     )
+
+
+@dataclass(frozen=True)
+class FlockLoss:
+    """The flock-sum term (`learning.flock_loss`): its weight and each sample's R_world_body."""
+
+    weight: float
+    to_world: np.ndarray  # (n, 3, 3) float32
+
+
+Batch = np.ndarray | tuple[np.ndarray, np.ndarray]  # rows, or (rows, batch-local flock index)
 
 
 @dataclass
@@ -274,6 +308,10 @@ def train_on(
     ram_max = int(config.ram_max_gib * 2**30)
     train_data = subset(train_split, config.limit_train, config.seed, ram_max)
     rows = epoch_rows(train_data)
+    flock = None
+    if config.weight_flock is not None:
+        flock_id = flock_ids(train_data.meta)
+        flock = FlockLoss(config.weight_flock, world_rotations(train_data.meta))
     val_data = subset(val_split, config.limit_val, config.seed + 1, ram_max)
     out = config.out_dir
     out.mkdir(parents=True, exist_ok=True)
@@ -314,7 +352,11 @@ def train_on(
     while not plateau.stop and epoch < config.max_epochs:
         epoch += 1
         epoch_start = time.perf_counter()
-        batches = shuffled_batches(len(rows), config.batch_size, config.seed, epoch, rows)
+        batches: list[Batch] = (
+            list(shuffled_batches(len(rows), config.batch_size, config.seed, epoch, rows))
+            if flock is None
+            else list(flock_batches(flock_id, rows, config.batch_size, config.seed, epoch))
+        )
         cosine = config.lr_schedule == "cosine"
         lr_at = _cosine_lr_at(config, epoch, len(batches)) if cosine else None
         train_loss, samples_per_s, clipped = _train_epoch(
@@ -332,6 +374,7 @@ def train_on(
             if config.weight_speed_mps is None
             else (config.weight_speed_mps, config.weight_cap),
             lr_at,
+            flock,
         )
         val_loss = validation_loss(model, val_data, config.eval_batch_size, device)
         lr = optimizer.param_groups[0]["lr"]  # the epoch's last batch's

@@ -56,6 +56,9 @@ class TrainConfig:
     # shrunk towards the mean; None: the paper's plain mean squared error
     weight_speed_mps: float | None = None
     weight_cap: float = 4.0
+    # add the flock-sum term (`sim_harness.learning.flock_loss`) with this weight: errors that a
+    # whole flock shares at one time step cost more than independent ones; None: off
+    weight_flock: float | None = None
     # "plateau" (the paper's) or "cosine" (`sim_harness.learning.lr_schedule`)
     lr_schedule: str = "plateau"
 
@@ -86,6 +89,8 @@ class TrainConfig:
         if self.weight_speed_mps is not None:
             require_positive("weight_speed_mps", self.weight_speed_mps)
         require_range("weight_cap", self.weight_cap, 1.0, None)
+        if self.weight_flock is not None:
+            require_range("weight_flock", self.weight_flock, 0.0, 100.0, low_inclusive=False)
         if self.lr_schedule not in LR_SCHEDULES:
             raise ConfigError(
                 f"lr_schedule: {self.lr_schedule!r} is not one of {', '.join(LR_SCHEDULES)}"
