@@ -13,6 +13,10 @@ One safeguard the paper does not state: the gradient's global norm is clipped at
 batch norm and zero-initialized head (see `sim_harness.learning.model`); it is kept against rare
 start-up spikes, and `metrics.jsonl` records the fraction of clipped steps per epoch.
 
+Optional terms beyond the paper: `weight_speed_mps` weights each sample's error by the size of its
+command; `weight_flock` adds the flock-sum term (`sim_harness.learning.flock_loss`: the error a
+whole flock shares at one time step), and then batches are drawn as whole flocks.
+
 A run directory holds `last.ckpt` (written every epoch, for `resume`), `best.ckpt` (lowest
 validation loss), `metrics.jsonl` (one JSON object per epoch), `learning_curve.png` and
 `config.json`.
@@ -212,8 +216,9 @@ def train(config: TrainConfig) -> TrainResult:
         roots = list(dict.fromkeys(config.extra_train))
         parts = [train_split, *(open_dataset(root).split("train") for root in roots)]
         joined = concat_splits(parts)
-        part = np.repeat(np.arange(len(parts)), [p.n_samples for p in parts])
-        joined = InMemorySplit(joined.images, joined.targets, {**joined.meta, PART_COLUMN: part})
+        part_of_row = np.repeat(np.arange(len(parts)), [p.n_samples for p in parts])
+        meta = {**joined.meta, PART_COLUMN: part_of_row}  # flocks never span two folders
+        joined = InMemorySplit(joined.images, joined.targets, meta)
         times = [1] + [config.extra_train.count(root) for root in roots]
         counts = np.repeat(times, [part.n_samples for part in parts]).astype(np.int64)
         train_split = with_repeats(joined, counts) if max(times) > 1 else joined
