@@ -23,6 +23,7 @@ Batches are then drawn as whole flocks (`flock_batches`), so that every flock's 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -55,6 +56,25 @@ def flock_ids(meta: Mapping[str, NDArray[Any]]) -> NDArray[np.int64]:
         part = np.asarray(meta[PART_COLUMN])
         starts[1:] |= part[1:] != part[:-1]
     return (np.cumsum(starts) - 1).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class FlockLoss:
+    """The term's weight and each training sample's R_world_body (n, 3, 3) float32."""
+
+    weight: float
+    to_world: NDArray[np.float32]
+
+    def view_to_world(self, rows: NDArray[np.int64], views: torch.Tensor) -> torch.Tensor:
+        """(B, 3, 3): a batch's map from the augmented view's frame to the world.
+
+        `views` holds each sample's label matrix L (`symmetry.augment_with_views`): L^T turns the
+        view's frame back into the recorded body frame, R_world_body then into the world.
+        """
+        return torch.from_numpy(self.to_world[rows]) @ views.transpose(1, 2)
+
+
+Batch = NDArray[np.int64] | tuple[NDArray[np.int64], NDArray[np.int64]]  # rows, or with flocks
 
 
 def world_rotations(meta: Mapping[str, NDArray[Any]]) -> NDArray[np.float32]:

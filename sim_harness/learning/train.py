@@ -61,6 +61,8 @@ from sim_harness.learning.checkpoint import (
 from sim_harness.learning.evaluate import predict
 from sim_harness.learning.flock_loss import (
     PART_COLUMN,
+    Batch,
+    FlockLoss,
     flock_batches,
     flock_ids,
     flock_term,
@@ -154,9 +156,7 @@ def _train_epoch(
         images, targets, views = augment_with_views(images, targets, generator, augment_group)
         tensors: tuple[torch.Tensor, ...] = (images, targets)
         if flock is not None and local is not None:
-            # the error is in the view's frame: L^T back to the body, then R_world_body
-            to_world = torch.from_numpy(flock.to_world[rows]) @ views.transpose(1, 2)
-            tensors = (*tensors, to_world, torch.from_numpy(local))
+            tensors = (*tensors, flock.view_to_world(rows, views), torch.from_numpy(local))
         if pin:
             tensors = tuple(t.pin_memory() for t in tensors)
         return tensors
@@ -254,17 +254,6 @@ def make_scheduler(
         patience=config.lr_patience_epochs - 1,  # torch acts on the (patience + 1)-th bad epoch
         threshold=0.0,
     )
-
-
-@dataclass(frozen=True)
-class FlockLoss:
-    """The flock-sum term (`learning.flock_loss`): its weight and each sample's R_world_body."""
-
-    weight: float
-    to_world: np.ndarray  # (n, 3, 3) float32
-
-
-Batch = np.ndarray | tuple[np.ndarray, np.ndarray]  # rows, or (rows, batch-local flock index)
 
 
 @dataclass
