@@ -58,12 +58,18 @@ def encode_param_value(value: float, param_type: int) -> float:
 
 @dataclass(frozen=True)
 class ModeSample:
-    """One HEARTBEAT: receive time, decoded mode (None: not a PX4 mode we know), armed."""
+    """One HEARTBEAT: receive time, decoded mode (None: not a PX4 mode we know), armed, and
+    MAV_STATE (PX4 says CRITICAL or EMERGENCY while a failsafe is active)."""
 
     t_s: float
     mode: Px4Mode | None
     custom_mode: int
     armed: bool
+    system_status: int = mavlink.MAV_STATE_ACTIVE
+
+    @property
+    def failsafe(self) -> bool:
+        return self.system_status in (mavlink.MAV_STATE_CRITICAL, mavlink.MAV_STATE_EMERGENCY)
 
 
 @dataclass(frozen=True)
@@ -343,7 +349,7 @@ class GroundStation:
             if kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
                 armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                 mode = Px4Mode.from_custom_mode(msg.custom_mode)
-                self.modes.append(ModeSample(now, mode, msg.custom_mode, armed))
+                self.modes.append(ModeSample(now, mode, msg.custom_mode, armed, msg.system_status))
             elif kind == "LOCAL_POSITION_NED":
                 fields = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
                 self.positions.append(PositionSample(now, *fields))

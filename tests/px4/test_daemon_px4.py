@@ -197,17 +197,29 @@ def test_no_engagement_during_a_px4_failsafe(shipped: Any, daemon_run: Any) -> N
     fence = gcs.get_param("GF_MAX_VER_DIST")
     assert fence is not None
     try:
+        breached = time.monotonic()
         gcs.set_param("GF_MAX_VER_DIST", 2.0, 9)  # the vehicle hovers about 5 m up: a breach
+        # This breach's failsafe, not an earlier test's: its text and a CRITICAL heartbeat.
         gcs.wait_until(
-            lambda: any("Failsafe activated" in t for t in gcs.texts_since(0.0)), 5.0, "failsafe"
+            lambda: (
+                any("Failsafe activated" in t for t in gcs.texts_since(breached))
+                and any(m.failsafe for m in gcs.modes_since(breached))
+            ),
+            5.0 + HEARTBEAT_SLACK_S,
+            "failsafe",
         )
         run = daemon_run(vehicle)
         logged(run, "PX4 is in a failsafe")
         tried = time.monotonic()
-        gcs.set_mode(Px4Mode.OFFBOARD)  # PX4 acknowledges, but has no setpoints to switch to
+        gcs.set_mode(Px4Mode.OFFBOARD)  # PX4 refuses: it has no setpoints to switch to
         time.sleep(HEARTBEAT_SLACK_S + 1.0)
-        assert all(m.mode is Px4Mode.HOLD for m in gcs.modes_since(tried))
-        assert "ready" not in run.health_events()
+        heartbeats = [
+            (round(m.t_s - tried, 1), m.mode, m.system_status) for m in gcs.modes_since(breached)
+        ]
+        seen = (heartbeats, gcs.texts_since(breached), run.health_lines())
+        assert all(m.mode is not Px4Mode.OFFBOARD for m in gcs.modes_since(tried)), seen
+        assert all(m.failsafe for m in gcs.modes_since(tried)), seen  # PX4 still holds
+        assert "ready" not in run.health_events(), seen
     finally:
         gcs.set_param("GF_MAX_VER_DIST", fence, 9)
     gcs.set_mode(Px4Mode.HOLD)  # back inside the fence; the pilot's mode change ends the failsafe
