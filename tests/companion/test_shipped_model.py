@@ -15,8 +15,8 @@ outputs by at most 1.4e-6 m/s (the sidecar's export check: 5.8e-7 between the ea
 exported model). A 1e-4 m/s velocity error integrates to 1 mm in 10 s of flight, below anything
 the control law or PX4 resolves; a change that matters moves the outputs by far more (measured:
 one grey level added to every pixel of an image, 7e-3 m/s with the model of 2026-11; the faces
-rotated by one turn the answer by 90 degrees: the shipped policy averages over the rig's quarter
-turns, `sim_harness.learning.symmetry`).
+rotated by one turn the answer by 90 degrees: the shipped policy averages over the rig's symmetric
+views, `sim_harness.learning.symmetry`).
 
 Regenerate the golden file (after shipping a new model on purpose) with
 `.venv/bin/python tests/companion/test_shipped_model.py --regenerate`; it records the model's
@@ -125,27 +125,42 @@ def test_the_shipped_model_gives_its_recorded_outputs(graph_fusion: bool) -> Non
     assert np.ptp(values, axis=0).max() > 100 * TOLERANCE_MPS
 
 
+def quarter_turn(image: np.ndarray) -> np.ndarray:
+    """The stitched image as the drone turned a quarter turn left sees it: front <- left, ..."""
+    tiles = image.reshape(IMAGE_HEIGHT_PX, 6, IMAGE_HEIGHT_PX)
+    turned = tiles[:, [3, 0, 1, 2, 4, 5], :].copy()
+    turned[:, 4] = np.rot90(tiles[:, 4], 1)
+    turned[:, 5] = np.rot90(tiles[:, 5], -1)
+    return turned.reshape(image.shape)
+
+
+def mirrored(image: np.ndarray) -> np.ndarray:
+    """The stitched image of the scene mirrored in the body x-z plane: right and left faces
+    swap, every face flipped left-right."""
+    tiles = image.reshape(IMAGE_HEIGHT_PX, 6, IMAGE_HEIGHT_PX)
+    return tiles[:, [0, 3, 2, 1, 4, 5], ::-1].copy().reshape(image.shape)
+
+
 def test_the_shipped_model_is_the_symmetrized_policy_its_metadata_names() -> None:
-    """The sidecar says the graph averages over the rig's quarter turns (c4); a constant image
-    looks the same in every view, so such a policy's horizontal answer to it is exactly zero,
-    and a quarter turn of the faces turns its answer by a quarter turn."""
-    metadata = json.loads(sidecar_path(MODEL).read_text())["metadata"]
-    assert metadata["runtime"]["symmetry"] == {
-        **metadata["runtime"]["symmetry"],
-        "group": "c4",
-        "views": 4,
-    }
+    """The sidecar names the views the graph averages over: the rig's four quarter turns (c4),
+    and with d4 each also mirrored. A constant image looks the same in every view, so such a
+    policy's horizontal answer to it is exactly zero; a quarter turn of the faces turns its
+    answer by a quarter turn; with d4, the mirrored scene gets the mirrored answer."""
+    symmetry = json.loads(sidecar_path(MODEL).read_text())["metadata"]["runtime"]["symmetry"]
+    assert (symmetry["group"], symmetry["views"]) in (("c4", 4), ("d4", 8))
     golden = json.loads(GOLDEN.read_text())["outputs"]
     assert np.abs(golden[f"gray{GRAY}"][:2]).max() < 1e-6 < abs(golden[f"gray{GRAY}"][2])
     image = inputs()["horizon"]
-    tiles = image.reshape(IMAGE_HEIGHT_PX, 6, IMAGE_HEIGHT_PX)
-    turned = tiles[:, [3, 0, 1, 2, 4, 5], :].copy()  # a quarter turn left: front <- left, ...
-    turned[:, 4] = np.rot90(tiles[:, 4], 1)
-    turned[:, 5] = np.rot90(tiles[:, 5], -1)
     with Policy.load(PolicyConfig(model_path=MODEL)) as policy:
-        out = policy.infer_batch(np.stack([image, turned.reshape(image.shape)]), zero_invalid=False)
+        out = policy.infer_batch(
+            np.stack([image, quarter_turn(image), mirrored(image)]), zero_invalid=False
+        )
     vx, vy, vz = out[0]
     np.testing.assert_allclose(out[1], [vy, -vx, vz], atol=TOLERANCE_MPS)
+    if symmetry["group"] == "d4":
+        np.testing.assert_allclose(out[2], [vx, -vy, vz], atol=TOLERANCE_MPS)
+    else:  # c4 alone does not mirror: the horizon's drones are not placed symmetrically
+        assert abs(out[2][1] + vy) > 100 * TOLERANCE_MPS
 
 
 @pytest.mark.parametrize("graph_fusion", [False, True], ids=["unfused", "fused"])
