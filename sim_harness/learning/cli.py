@@ -85,6 +85,15 @@ def add_learning_commands(sub: Any) -> None:
         help="weight each sample's squared error by max(1, |target| / MPS), at most "
         "--weight-cap, so rare large commands are not shrunk (default: plain MSE, the paper's)",
     )
+    t.add_argument(
+        "--weight-near",
+        type=float,
+        default=None,
+        metavar="M",
+        help="weight each sample's squared error by (M / nearest neighbour's distance)^4 inside "
+        "M, at most --weight-cap, so the rare close-range states are fitted; with --weight-speed "
+        "a sample takes the larger weight (default: off)",
+    )
     t.add_argument("--weight-cap", type=float, default=4.0, help="largest weight (default 4)")
     t.add_argument(
         "--weight-flock",
@@ -163,6 +172,7 @@ def _train(args: argparse.Namespace) -> int:
         init_from=args.init_from,
         augment=args.augment,
         weight_speed_mps=args.weight_speed,
+        weight_near_m=args.weight_near,
         weight_cap=args.weight_cap,
         weight_flock=args.weight_flock,
         lr_schedule=args.lr_schedule,

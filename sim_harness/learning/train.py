@@ -14,8 +14,10 @@ batch norm and zero-initialized head (see `sim_harness.learning.model`); it is k
 start-up spikes, and `metrics.jsonl` records the fraction of clipped steps per epoch.
 
 Optional terms beyond the paper: `weight_speed_mps` weights each sample's error by the size of its
-command; `weight_flock` adds the flock-sum term (`sim_harness.learning.flock_loss`: the error a
-whole flock shares at one time step), and then batches are drawn as whole flocks.
+command and `weight_near_m` by how close its nearest neighbour is
+(`sim_harness.learning.sample_weights`); `weight_flock` adds the flock-sum term
+(`sim_harness.learning.flock_loss`: the error a whole flock shares at one time step), and then
+batches are drawn as whole flocks.
 
 A run directory holds `last.ckpt` (written every epoch, for `resume`), `best.ckpt` (lowest
 validation loss), `metrics.jsonl` (one JSON object per epoch), `learning_curve.png` and
@@ -36,6 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from companion.errors import ConfigError
 from sim_harness.learning.batches import (
     InMemorySplit,
     SplitArrays,
@@ -70,6 +73,7 @@ from sim_harness.learning.flock_loss import (
 )
 from sim_harness.learning.lr_schedule import cosine_lr
 from sim_harness.learning.model import DroNet, build_model, parameter_groups
+from sim_harness.learning.sample_weights import SampleWeighting, weighted_velocity_loss
 from sim_harness.learning.symmetry import augment_with_views
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
 from sim_harness.sim.progress import progress_bar
@@ -84,23 +88,6 @@ CURVE_EVERY_EPOCHS = 5  # learning_curve.png is redrawn this often, and when tra
 def velocity_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean squared error over the batch and the three axes, (m/s)^2."""
     return (pred - target).square().mean()
-
-
-def speed_weights(target: torch.Tensor, speed_mps: float, cap: float) -> torch.Tensor:
-    """Per-sample weights max(1, |target| / speed_mps), at most `cap`: (B, 3) -> (B,)."""
-    return (target.norm(dim=1) / speed_mps).clamp(min=1.0, max=cap)
-
-
-def weighted_velocity_loss(
-    pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
-) -> torch.Tensor:
-    """Squared error averaged over the axes, then over the batch with `weights` (B,), (m/s)^2.
-
-    Normalized by the weights' sum: with all weights equal it is `velocity_loss`, so the learning
-    rate keeps its meaning.
-    """
-    per_sample = (pred - target).square().mean(dim=1)
-    return (weights * per_sample).sum() / weights.sum()
 
 
 def validation_loss(
@@ -128,14 +115,15 @@ def _train_epoch(
     desc: str,
     augment_group: str = "none",
     augment_seed: tuple[int, int] = (0, 0),
-    weighting: tuple[float, float] | None = None,
+    weighting: SampleWeighting | None = None,
     lr_at: Callable[[int], float] | None = None,
     flock: FlockLoss | None = None,
 ) -> tuple[float, float, float]:
     """One pass over `batches`; returns (mean training loss, samples/s, fraction clipped).
 
-    `weighting`: (speed_mps, cap) of `speed_weights`, or None for the plain mean squared error;
-    the returned loss is the one minimized (weighted when weighting).
+    `weighting`: the per-sample loss weights, or None for the plain mean squared error; the
+    returned loss is the one minimized (weighted when weighting). A close-range weighting reads
+    the split's "nearest_m" column.
 
     `augment_group`: each sample is shown in a random view of this symmetry group with its label
     transformed to match (`learning.symmetry.augment`), drawn from a generator seeded by
@@ -154,7 +142,13 @@ def _train_epoch(
         rows, local = item if isinstance(item, tuple) else (item, None)
         images, targets = load_batch(split, rows)
         images, targets, views = augment_with_views(images, targets, generator, augment_group)
-        tensors: tuple[torch.Tensor, ...] = (images, targets)
+        # the symmetries move no drone, so the nearest neighbour's distance stays the sample's
+        nearest = torch.from_numpy(
+            np.asarray(split.meta["nearest_m"][rows], dtype=np.float32)
+            if weighting is not None and weighting.near_m is not None
+            else np.zeros(0, dtype=np.float32)
+        )
+        tensors: tuple[torch.Tensor, ...] = (images, targets, nearest)
         if flock is not None and local is not None:
             tensors = (*tensors, flock.view_to_world(rows, views), torch.from_numpy(local))
         if pin:
@@ -174,13 +168,14 @@ def _train_epoch(
         leave=False,
     ) as bar:
         for step, tensors in enumerate(prefetch(batch(item) for item in batches)):
-            images, targets, *flock_tensors = (t.to(device, non_blocking=True) for t in tensors)
+            images, targets, nearest, *flock_tensors = (
+                t.to(device, non_blocking=True) for t in tensors
+            )
             pred = model(images)
             if weighting is None:
                 loss = velocity_loss(pred, targets)
             else:
-                weights = speed_weights(targets, *weighting)
-                loss = weighted_velocity_loss(pred, targets, weights)
+                loss = weighted_velocity_loss(pred, targets, weighting.weights(targets, nearest))
             if flock is not None:
                 to_world, local = flock_tensors
                 term = flock_term(pred - targets, to_world, local, int(local.max().item()) + 1)
@@ -302,6 +297,11 @@ def train_on(
     ram_max = int(config.ram_max_gib * 2**30)
     train_data = subset(train_split, config.limit_train, config.seed, ram_max)
     rows = epoch_rows(train_data)
+    if config.weight_near_m is not None and "nearest_m" not in train_data.meta:
+        raise ConfigError(
+            "weight_near_m: the training data lacks the per-sample column nearest_m (a dataset "
+            "written by `swarm-sim dataset generate` or `aggregate` has it)"
+        )
     flock = None
     if config.weight_flock is not None:
         flock_id = flock_ids(train_data.meta)
@@ -364,9 +364,7 @@ def train_on(
             f"epoch {epoch}/{config.max_epochs}",
             config.augment,
             (config.seed, epoch),
-            None
-            if config.weight_speed_mps is None
-            else (config.weight_speed_mps, config.weight_cap),
+            SampleWeighting.of(config),
             lr_at,
             flock,
         )

@@ -55,6 +55,11 @@ class TrainConfig:
     # `weight_cap`, so the rare large commands (a neighbour close by, a stretched flock) are not
     # shrunk towards the mean; None: the paper's plain mean squared error
     weight_speed_mps: float | None = None
+    # weight each sample's squared error by (weight_near_m / nearest)^4 where its nearest
+    # neighbour is closer than weight_near_m, capped at `weight_cap`: the rare close-range states,
+    # where a pair's safety is decided, weigh as much as the largest commands (with
+    # weight_speed_mps too, a sample takes the larger of its two weights); None: off
+    weight_near_m: float | None = None
     weight_cap: float = 4.0
     # add the flock-sum term (`sim_harness.learning.flock_loss`) with this weight: errors that a
     # whole flock shares at one time step cost more than independent ones; None: off
@@ -88,6 +93,8 @@ class TrainConfig:
         require_group(self.augment, "augment")
         if self.weight_speed_mps is not None:
             require_positive("weight_speed_mps", self.weight_speed_mps)
+        if self.weight_near_m is not None:
+            require_range("weight_near_m", self.weight_near_m, 0.0, 20.0, low_inclusive=False)
         require_range("weight_cap", self.weight_cap, 1.0, None)
         if self.weight_flock is not None:
             require_range("weight_flock", self.weight_flock, 0.0, 100.0, low_inclusive=False)

@@ -27,16 +27,20 @@ from sim_harness.learning.checkpoint import (
 )
 from sim_harness.learning.lr_schedule import cosine_lr
 from sim_harness.learning.model import build_model
+from sim_harness.learning.sample_weights import (
+    SampleWeighting,
+    near_weights,
+    speed_weights,
+    weighted_velocity_loss,
+)
 from sim_harness.learning.train import (
     Plateau,
     TrainConfig,
     make_optimizer,
     make_scheduler,
-    speed_weights,
     train,
     train_on,
     velocity_loss,
-    weighted_velocity_loss,
 )
 
 
@@ -200,6 +204,32 @@ def test_speed_weights_grow_with_the_command_from_one_to_the_cap() -> None:
     assert equal.item() == pytest.approx(velocity_loss(pred, target).item())
 
 
+def test_near_weights_climb_inside_the_radius_to_the_cap() -> None:
+    nearest = torch.tensor([3.0, 1.5, 1.25, 1.0, 0.5, 0.0])
+    weights = near_weights(nearest, 1.5, 4.0).tolist()
+    assert weights == pytest.approx([1.0, 1.0, 1.2**4, 4.0, 4.0, 4.0])
+
+
+def test_a_sample_takes_the_larger_of_its_speed_and_close_range_weights() -> None:
+    target = torch.tensor([[3.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.2, 0.0, 0.0]])
+    nearest = torch.tensor([1.0, 1.25, 5.0])
+    both = SampleWeighting(cap=4.0, speed_mps=1.0, near_m=1.5).weights(target, nearest)
+    assert both.tolist() == pytest.approx([4.0, 1.2**4, 1.0])
+    speed_only = SampleWeighting(cap=4.0, speed_mps=1.0).weights(target, torch.zeros(0))
+    assert speed_only.tolist() == pytest.approx([3.0, 1.0, 1.0])
+
+
+@pytest.mark.slow
+def test_a_run_weighted_by_the_nearest_neighbour_trains_and_records_it(
+    smoke_dataset, tmp_path
+) -> None:
+    result = train(quick(smoke_dataset, tmp_path / "run", weight_near_m=1.5, max_epochs=2))
+    assert result.epochs_run == 2
+    assert all(np.isfinite(row["train_loss"]) for row in result.history)
+    saved = torch.load(tmp_path / "run" / "last.ckpt", weights_only=False)
+    assert saved["config"]["weight_near_m"] == 1.5
+
+
 def test_weighting_moves_the_fit_towards_the_rare_large_commands() -> None:
     # Three hovering samples and one large command that the images cannot tell apart: the plain
     # MSE fit is their mean (shrunk to 1/4 of the large command); the weighted fit keeps more.
@@ -224,6 +254,8 @@ def test_weighting_moves_the_fit_towards_the_rare_large_commands() -> None:
     [
         ({"weight_speed_mps": 0.0}, "weight_speed_mps"),
         ({"weight_cap": 0.5}, "weight_cap"),
+        ({"weight_near_m": 0.0}, "weight_near_m"),
+        ({"weight_near_m": float("nan")}, "weight_near_m"),
         ({"lr_schedule": "linear"}, "lr_schedule"),
         ({"batch_size": 0}, "batch_size"),
         ({"lr": -1.0}, "lr"),
