@@ -230,6 +230,16 @@ def test_a_run_weighted_by_the_nearest_neighbour_trains_and_records_it(
     assert saved["config"]["weight_near_m"] == 1.5
 
 
+def test_a_close_range_weight_without_distances_names_the_field(tmp_path) -> None:
+    images = np.zeros((4, 64, 384), dtype=np.uint8)
+    split = InMemorySplit(images, np.zeros((4, 3), dtype=np.float32), {})
+    manifest = {"id": "no-distances", "pixel_mean": 128.0, "pixel_std": 64.0}
+    config = quick(tmp_path, tmp_path / "run", weight_near_m=1.5, max_epochs=1)
+    with pytest.raises(ConfigError, match="weight_near_m.*nearest_m"):
+        train_on(config, manifest, split, split)
+    assert not (tmp_path / "run" / "last.ckpt").exists()
+
+
 def test_weighting_moves_the_fit_towards_the_rare_large_commands() -> None:
     # Three hovering samples and one large command that the images cannot tell apart: the plain
     # MSE fit is their mean (shrunk to 1/4 of the large command); the weighted fit keeps more.
