@@ -51,9 +51,9 @@ AT_ARRIVAL_S = 1.0  # a dip this close to an arriving flight's end counts as "at
 def fly_variant(key: str, seeds: list[int]) -> dict[str, Any]:
     """The teacher's flights of one variant: per-seed closest pair, its time, the end."""
     n, v_max, k_mig = VARIANTS[key]
+    flocking = FlockingParams(v_max_mps=v_max, k_mig=k_mig)
     flights = []
     for seed in seeds:
-        flocking = FlockingParams(v_max_mps=v_max, k_mig=k_mig)
         config = ScenarioConfig(name="common", n_agents=n, seed=seed, flocking=flocking)
         log = fly(build_scenario(config), TeacherController(flocking))
         step = int(np.nanargmin(log.d_min_m))
