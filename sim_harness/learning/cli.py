@@ -135,6 +135,14 @@ def add_learning_commands(sub: Any) -> None:
         help="average the network over the rig's symmetric views of each image (one batch of "
         "2, 4 or 8 per image; exactly equivariant, a body-frame bias cancels; default none)",
     )
+    x.add_argument(
+        "--output-gain",
+        type=float,
+        default=1.0,
+        help="multiply the network's answers by this (its head's weights), recorded in the "
+        "metadata; > 1 undoes the shrinking of large commands (docs: models/README.md; "
+        "default 1, range 0.5-2)",
+    )
     x.set_defaults(handler=_export)
 
     g = sub.add_parser("gradcam", help="Grad-CAM saliency PNGs for dataset samples")
@@ -230,15 +238,19 @@ def _export(args: argparse.Namespace) -> int:
         checkpoint_chain,
         export_policy,
         load_eager_model,
+        require_output_gain,
+        scale_output,
         to_torchscript,
     )
 
     if args.out.suffix != ".pt":
         raise ConfigError(f"out: the policy file must end in .pt, got {args.out}")
+    require_output_gain(args.output_gain)  # before anything is read
     eval_out = args.eval_out or Path("runs/eval") / f"{args.out.stem}-test"
     require_writable_dir(args.out.parent)
     require_writable_dir(eval_out, "eval-out")
     model, state = load_eager_model(args.checkpoint)
+    scale_output(model, args.output_gain)
     dataset = open_dataset(args.dataset)
     if state["dataset"]["id"] != dataset.id:
         raise CheckpointError(
@@ -258,6 +270,7 @@ def _export(args: argparse.Namespace) -> int:
         "initial_val_mse": state["initial_val_loss"],
         "wall_time_s": last["wall_time_s"],
         "config": state["config"],
+        "output_gain": args.output_gain,
         **checkpoint_chain(state),
     }
     result = export_policy(

@@ -48,6 +48,7 @@ from companion.model_file import (
     torchscript_calls,
 )
 from companion.model_reference import SIDECAR_KEY, Reference, reference_scene
+from companion.validation import require_range
 from sim_harness.learning.checkpoint import load_checkpoint, model_from_checkpoint
 from sim_harness.learning.evaluate import PolicyModule
 from sim_harness.learning.inference_graph import InferenceDroNet
@@ -96,6 +97,30 @@ def to_torchscript(
         traced = torch.jit.trace(module, example_input(1))  # type: ignore[no-untyped-call]
         frozen: torch.jit.ScriptModule = torch.jit.freeze(traced)
     return frozen
+
+
+OUTPUT_GAIN_RANGE = (0.5, 2.0)  # `scale_output`'s accepted gains
+
+
+def require_output_gain(gain: float) -> float:
+    """`gain` if inside `OUTPUT_GAIN_RANGE`, else `ConfigError` naming the field and the range."""
+    return require_range("output-gain", gain, *OUTPUT_GAIN_RANGE)
+
+
+def scale_output(model: DroNet, gain: float) -> None:
+    """Multiply the regression head's weights and bias by `gain`, in place: the network then
+    answers `gain` times what it did, exactly (the head is linear and last; the symmetrized
+    policy averages outputs linearly). Raises `ConfigError` outside `OUTPUT_GAIN_RANGE`.
+
+    Why a gain: a network trained with a squared error on images that cannot pin every detail
+    answers large commands too small (`benchmarks/command_shrinkage.py`); in flight that is a
+    flock whose separation pushes too softly. The gain is chosen in closed loop on seeds the
+    bar does not fly and recorded in the policy's training metadata (`output_gain`).
+    """
+    require_output_gain(gain)
+    with torch.no_grad():
+        model.head.weight.mul_(gain)
+        model.head.bias.mul_(gain)
 
 
 def weights_path_for(policy_path: Path) -> Path:

@@ -316,3 +316,48 @@ def test_a_chain_is_the_one_recorded_when_the_fine_tune_started(smoke_dataset, t
     assert export(b, tmp_path / "again.pt") == ["train A", "train B"]
     c = run("C", init_from=b / "last.ckpt")
     assert export(c, tmp_path / "c.pt") == ["train A", "train B", "train C"]
+
+
+def test_an_output_gain_scales_every_answer_and_is_recorded(smoke_dataset, tmp_path) -> None:
+    run = tmp_path / "run"
+    config = TrainConfig(
+        dataset=smoke_dataset, out_dir=run, max_epochs=1, limit_train=16, progress=False
+    )
+    train(config)
+
+    def export(name: str, *extra: str):
+        out = tmp_path / f"{name}.pt"
+        args = ["export", "--checkpoint", str(run), "--dataset", str(smoke_dataset)]
+        assert main([*args, "--out", str(out), "--eval-out", str(tmp_path / name), *extra]) == 0
+        return load_model(out)
+
+    plain = export("plain")
+    gained = export("gained", "--output-gain", "1.25", "--symmetry", "c4")
+    assert plain.metadata["training"]["output_gain"] == 1.0
+    assert gained.metadata["training"]["output_gain"] == 1.25
+    symmetric = export("symmetric", "--symmetry", "c4")
+    images = torch.from_numpy(open_dataset(smoke_dataset).split("test").images[:8].copy())
+    with torch.inference_mode():
+        base = symmetric.module(images)
+        scaled = gained.module(images)
+    assert float(base.abs().max()) > 0.01  # the network answers something to scale
+    torch.testing.assert_close(scaled, 1.25 * base, rtol=1e-4, atol=1e-5)
+    # The eager weights Grad-CAM reads carry the same gain.
+    eager, _ = load_eager_model(tmp_path / "gained.pt")
+    with torch.inference_mode():
+        torch.testing.assert_close(
+            eager(images[:2]),
+            1.25 * load_eager_model(tmp_path / "symmetric.pt")[0](images[:2]),
+            rtol=1e-4,
+            atol=1e-5,
+        )
+
+
+@pytest.mark.parametrize("gain", ["0", "-1", "2.5", "nan"])
+def test_an_output_gain_out_of_range_is_refused_naming_the_field(
+    smoke_dataset, tmp_path, gain, capsys
+) -> None:
+    args = ["export", "--checkpoint", str(tmp_path / "none.ckpt"), "--dataset", str(smoke_dataset)]
+    status = main([*args, "--out", str(tmp_path / "p.pt"), "--output-gain", gain])
+    assert status != 0
+    assert "output-gain" in capsys.readouterr().err
