@@ -170,10 +170,25 @@ def _model_lines(result: SuiteResult) -> list[str]:
         overall = block.get("overall", {}).get("r2")
         parts = ", ".join(f"{k} {_num(v)}" for k, v in r2.items())
         lines.append(f"- Test split R²: {parts}; overall {_num(overall)}")
+    lines += _export_lines(meta)
     training = meta.get("training")
     if isinstance(training, dict):
         lines += _training_lines(training)
     return lines
+
+
+def _export_lines(meta: dict[str, Any]) -> list[str]:
+    """How the export shaped the policy: the views it averages over and its output gain."""
+    parts = []
+    runtime = meta.get("runtime")
+    symmetry = runtime.get("symmetry") if isinstance(runtime, dict) else None
+    if isinstance(symmetry, dict) and symmetry.get("group") not in (None, "none"):
+        parts.append(f"averaged over {symmetry.get('views')} views (`{symmetry['group']}`)")
+    training = meta.get("training")
+    gain = training.get("output_gain") if isinstance(training, dict) else None
+    if isinstance(gain, (int, float)) and gain != 1.0:
+        parts.append(f"every answer multiplied by the output gain {gain:g}")
+    return [f"- Exported policy: {'; '.join(parts)}"] if parts else []
 
 
 def _counts_text(counts: dict[str, Any]) -> str:

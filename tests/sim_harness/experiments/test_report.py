@@ -216,3 +216,16 @@ def test_model_lines_say_when_only_the_last_training_command_is_recorded() -> No
     text = _model_text({"training": training})
     assert "only this last step" in text and "a fine-tune of `m`" in text
     assert "`swarm-sim train --init-from models/m.pt`" in text
+
+
+def test_model_lines_say_how_the_export_shaped_the_policy() -> None:
+    d4 = {"runtime": {"symmetry": {"group": "d4", "views": 8}}}
+    gained = _model_text({**d4, "training": {"output_gain": 1.3, "command": "x"}})
+    assert (
+        "- Exported policy: averaged over 8 views (`d4`); every answer multiplied by the "
+        "output gain 1.3" in gained
+    )
+    plain = _model_text(
+        {"runtime": {"symmetry": {"group": "none", "views": 1}}, "training": {"output_gain": 1.0}}
+    )
+    assert "Exported policy" not in plain  # nothing to say for a plain export
