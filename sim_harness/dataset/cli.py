@@ -82,6 +82,14 @@ def add_dataset_commands(sub: Any) -> Any:
     r.add_argument("--out", type=Path, required=True, help="the new dataset's folder")
     r.add_argument("--renderer", required=True, choices=RENDERERS)
     r.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    r.add_argument(
+        "--vary-scene",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="draw each run against its own random ground and sky (from this seed) instead of "
+        "the default scene",
+    )
     r.add_argument("--no-progress", action="store_true")
     r.set_defaults(handler=_rerender)
     return dsub
@@ -159,6 +167,7 @@ def _rerender(args: argparse.Namespace) -> int:
         workers=args.workers,
         progress=not args.no_progress,
         command=command_line(),
+        vary_scene=args.vary_scene,
     )
     counts = dataset.manifest["counts"]
     print(

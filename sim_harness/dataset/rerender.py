@@ -12,6 +12,10 @@ are written one file at a time, atomically: an interrupted redraw resumes with t
 Poses are stored as float32, so a redrawn image can differ from the source's by a pixel where an
 edge falls within a micrometre of a ray: redrawing with the source's own renderer reproduces it
 to that.
+
+`vary_scene` (a seed) draws each run against its own ground and sky (`scene.random_scene`, from
+SeedSequence([seed, split, run])) instead of the default scene: the same flock over fields the
+network has never seen, so that it learns the drones rather than one texture.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.validation import require_int_range
 from sim_harness.dataset.generate import check_or_write_spec, finalize
 from sim_harness.dataset.runs import RunData
 from sim_harness.dataset.spec import SPLITS, DatasetSpec
@@ -39,13 +44,23 @@ from sim_harness.errors import DatasetError
 from sim_harness.sim.executor import open_pool
 from sim_harness.sim.progress import progress_bar
 from sim_harness.sim.renderers import make_renderer, require_renderer
+from sim_harness.sim.scene import SCENE_RANGES, SceneSpec, random_scene
 from sim_harness.sim.world import World
 
 _IMAGE_KEYS = ("images", "pixel_sum", "pixel_sumsq")
 _SCALAR_KEYS = ("run_index", "termination", "migration_point_world_enu")
 
 
-def redraw_run(source: Path, split: str, run_index: int, renderer_name: str) -> bytes:
+def run_scene(vary_scene: int | None, split: str, run_index: int) -> SceneSpec | None:
+    """The scene run `run_index` of `split` is drawn against: None (the default) or a random one."""
+    if vary_scene is None:
+        return None
+    return random_scene(np.random.default_rng([vary_scene, SPLITS.index(split), run_index]))
+
+
+def redraw_run(
+    source: Path, split: str, run_index: int, renderer_name: str, vary_scene: int | None = None
+) -> bytes:
     """The bytes of run `run_index` of `split` of the dataset at `source`, its images redrawn."""
     with np.load(run_path(source, split, run_index)) as z:
         arrays = {k: z[k] for k in z.files if k not in _IMAGE_KEYS + _SCALAR_KEYS}
@@ -61,7 +76,7 @@ def redraw_run(source: Path, split: str, run_index: int, renderer_name: str) -> 
         )
     pos = arrays["pos_world_enu"].astype(np.float64).reshape(n_steps, n_agents, 3)
     q = arrays["q_world_body"].astype(np.float64).reshape(n_steps, n_agents, 4)
-    renderer = make_renderer(renderer_name)
+    renderer = make_renderer(renderer_name, run_scene(vary_scene, split, run_index))
     with World(n_agents) as world:
         images = np.concatenate([renderer.render(world, pos[k], q[k]) for k in range(n_steps)])
     run = RunData(split, run_index, termination, migration, images, arrays)
@@ -69,9 +84,11 @@ def redraw_run(source: Path, split: str, run_index: int, renderer_name: str) -> 
 
 
 def _redraw_and_store(
-    source: Path, out: Path, split: str, run_index: int, renderer_name: str
+    source: Path, out: Path, split: str, run_index: int, renderer_name: str, vary: int | None
 ) -> tuple[str, int]:
-    write_run_bytes(out, split, run_index, redraw_run(source, split, run_index, renderer_name))
+    write_run_bytes(
+        out, split, run_index, redraw_run(source, split, run_index, renderer_name, vary)
+    )
     return split, run_index
 
 
@@ -82,10 +99,14 @@ def rerender(
     workers: int | None = None,
     progress: bool = True,
     command: str = "",
+    vary_scene: int | None = None,
 ) -> Dataset:
-    """Redraw every run of the complete dataset at `source` into `out` (resumable)."""
+    """Redraw every run of the complete dataset at `source` into `out` (resumable); with
+    `vary_scene` (a seed >= 0), each run against its own random scene."""
     source, out = Path(source), Path(out)
     require_renderer(renderer_name)
+    if vary_scene is not None:
+        require_int_range("vary-scene", vary_scene, 0)
     original = open_dataset(source)
     manifest = original.manifest
     if out.resolve() == source.resolve():
@@ -102,7 +123,7 @@ def rerender(
             total=total, initial=total - len(todo), desc="redraw", enabled=progress, unit="run"
         ) as bar,
     ):
-        args = [(source, out, split, k, renderer_name) for split, k in todo]
+        args = [(source, out, split, k, renderer_name, vary_scene) for split, k in todo]
         pending = [pool.submit(_redraw_and_store, *a, label=f"{a[2]} run {a[3]}") for a in args]
         while pending:
             for task in pool.wait(pending):
@@ -118,4 +139,6 @@ def rerender(
     }
     if "aggregation" in manifest:
         extra["aggregation"] = manifest["aggregation"]
+    if vary_scene is not None:
+        extra["scene_variation"] = {"seed": vary_scene, "ranges": SCENE_RANGES}
     return finalize(out, spec, runs, command, extra=extra, id_extra=extra)

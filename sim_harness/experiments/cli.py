@@ -160,6 +160,14 @@ def add_experiment_commands(sub: Any) -> None:
         help="sensitivity check: add seeded uniform noise in [-MPS, MPS] to every CNN output "
         "component (e.g. 1e-6, the size of float rounding; default 0)",
     )
+    exp.add_argument(
+        "--ground",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="robustness check: draw the CNN's images against unseen ground and sky number SEED "
+        "(default: the scene the datasets are drawn in)",
+    )
     add_cluster_options(exp, shared_dir=False)
     exp.set_defaults(handler=_experiments)
 
@@ -193,6 +201,7 @@ def _run(
         renderer=args.renderer or renderer_of_model(args.model),
         experiments=getattr(args, "experiments", None),
         output_jitter_mps=getattr(args, "output_jitter", 0.0),
+        ground_seed=getattr(args, "ground", None),
     )
     require_writable_dir(args.out)
     n_flights = 2 * len(config.experiment_list) * len(config.seeds)

@@ -290,6 +290,12 @@ def write_report(
             "to every CNN output component**"
             if cfg.output_jitter_mps
             else ""
+        )
+        + (
+            f"; **robustness check: the CNN's images drawn over unseen ground number "
+            f"{cfg.ground_seed}** (`--ground`)"
+            if cfg.ground_seed is not None
+            else ""
         ),
         f"- {len(result.runs)} flights in {result.wall_time_s:.0f} s of wall time",
         "",
@@ -354,6 +360,7 @@ def _write_json(
         "renderer": cfg.renderer,
         "duration_s": cfg.duration_s,
         "output_jitter_mps": cfg.output_jitter_mps,
+        "ground_seed": cfg.ground_seed,
         "rates": {"physics_hz": cfg.rates.physics_hz, "control_hz": cfg.rates.control_hz},
         "wall_time_s": result.wall_time_s,
         "tables": tables,

@@ -28,6 +28,7 @@ from sim_harness.sim.executor import ClusterChoice, Task, TaskPool, announce, op
 from sim_harness.sim.renderers import make_renderer, warn_if_trained_elsewhere
 from sim_harness.sim.rollout import FlightLog, fly, save_flight, summarize
 from sim_harness.sim.scenarios import build_scenario
+from sim_harness.sim.scene import unseen_scene
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +106,11 @@ def fly_job(
         scenario,
         _controller(job, config, policy),
         config.rates,
-        renderer=make_renderer(config.renderer) if job.controller == "cnn" else None,
+        renderer=(
+            make_renderer(config.renderer, unseen_scene(config.ground_seed))
+            if job.controller == "cnn"
+            else None
+        ),
         progress=progress,
         progress_label=f"{job.experiment} / {LABELS[job.controller]} / seed {job.seed}",
         progress_lines=progress_lines,

@@ -125,6 +125,9 @@ class SuiteConfig:
     renderer: str = DEFAULT_RENDERER  # what draws the CNN's images (sim_harness.sim.renderers)
     # a sensitivity check: seeded uniform noise of this size (m/s) on every CNN output component
     output_jitter_mps: float = 0.0
+    # a robustness check: the CNN's images drawn against unseen ground and sky number `ground_seed`
+    # (sim_harness.sim.scene.unseen_scene) instead of the scene every dataset is drawn in
+    ground_seed: int | None = None
 
     def __post_init__(self) -> None:
         if self.suite not in SUITES:
@@ -146,6 +149,8 @@ class SuiteConfig:
         require_int_range("experiments.workers", self.workers, 1, 256)
         require_renderer(self.renderer, "experiments.renderer")
         require_range("experiments.output_jitter_mps", self.output_jitter_mps, 0.0, 1.0)
+        if self.ground_seed is not None:
+            require_int_range("experiments.ground", self.ground_seed, 0)
         if self.duration_s is not None:
             require_range(
                 "experiments.duration_s", self.duration_s, 0.0, 86_400.0, low_inclusive=False

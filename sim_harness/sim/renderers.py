@@ -23,6 +23,7 @@ from typing import Any
 
 from sim_harness.errors import ConfigError
 from sim_harness.sim.render import Renderer
+from sim_harness.sim.scene import SceneSpec
 
 log = logging.getLogger(__name__)
 
@@ -38,16 +39,18 @@ def require_renderer(name: str, field: str = "renderer") -> str:
     return name
 
 
-def make_renderer(name: str = DEFAULT_RENDERER) -> Renderer:
-    """A new renderer of that name (pybullet's is imported only when asked for)."""
+def make_renderer(name: str = DEFAULT_RENDERER, scene: SceneSpec | None = None) -> Renderer:
+    """A new renderer of that name, drawing `scene` (default `SceneSpec()`) behind the drones
+    (pybullet's is imported only when asked for)."""
     require_renderer(name)
     if name in ("raycast", "raycast-aa"):
         from sim_harness.sim.raycast import RaycastRenderer
 
-        return RaycastRenderer(supersample=AA_SUPERSAMPLE if name == "raycast-aa" else 1)
+        supersample = AA_SUPERSAMPLE if name == "raycast-aa" else 1
+        return RaycastRenderer(supersample=supersample, scene=scene)
     from sim_harness.sim.render import PyBulletRenderer
 
-    return PyBulletRenderer()
+    return PyBulletRenderer(scene=scene)
 
 
 def add_renderer_option(parser: argparse.ArgumentParser, follows_model: bool = False) -> None:

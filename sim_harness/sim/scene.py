@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.camera.layout import FACE_SIZE_PX, FACES, FOV_DEG
+from companion.validation import require_int_range
 from sim_harness.sim.pybullet_import import pb
 
 _MAX_GROUND_M = 1000.0
@@ -45,6 +46,46 @@ class SceneSpec:
 
     def as_dict(self) -> dict[str, float | int]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+#: What `random_scene` draws from (uniformly): grounds of other patterns, brightness, contrast and
+#: patch size, hazier or clearer air, brighter or duller skies. The ground stays within gray 100-210
+#: (`ground_texture` clips it), so the dark drones stand out against every draw, as by default.
+SCENE_RANGES: dict[str, tuple[float, float]] = {
+    "ground_tile_m": (8.0, 25.0),
+    "ground_mean": (125.0, 185.0),
+    "ground_std": (8.0, 36.0),
+    "ground_fade_m": (30.0, 70.0),
+    "sky_horizon_gray": (215.0, 245.0),
+    "sky_zenith_drop": (10.0, 50.0),  # the zenith this much darker than the horizon
+}
+
+
+def unseen_scene(seed: int | None) -> SceneSpec | None:
+    """Random scene number `seed` (>= 0) for flying over a ground no dataset used; None: default."""
+    if seed is None:
+        return None
+    require_int_range("ground", seed, 0)
+    return random_scene(np.random.default_rng([seed, 0x6E64]))
+
+
+def random_scene(rng: np.random.Generator) -> SceneSpec:
+    """A scene drawn from `SCENE_RANGES`, its ground texture from a fresh seed.
+
+    For training images against many backgrounds (`swarm-sim dataset rerender --vary-scene`): a
+    network trained on one ground texture learns that texture, and its answers drift when the
+    ground changes (benchmarks/ground_robustness.py).
+    """
+    u = {k: float(rng.uniform(*r)) for k, r in SCENE_RANGES.items()}
+    return SceneSpec(
+        ground_tile_m=u["ground_tile_m"],
+        ground_seed=int(rng.integers(0, 2**31 - 1)),
+        ground_mean=u["ground_mean"],
+        ground_std=u["ground_std"],
+        ground_fade_m=u["ground_fade_m"],
+        sky_horizon_gray=u["sky_horizon_gray"],
+        sky_zenith_gray=u["sky_horizon_gray"] - u["sky_zenith_drop"],
+    )
 
 
 def ground_texture(spec: SceneSpec) -> NDArray[np.uint8]:

@@ -52,3 +52,45 @@ def test_redrawing_refuses_its_own_source_and_an_unknown_renderer(smoke_dataset)
         rerender(smoke_dataset, smoke_dataset, "raycast", workers=1, progress=False)
     with pytest.raises(ConfigError, match="unknown renderer"):
         rerender(smoke_dataset, smoke_dataset.parent / "x", "opengl", workers=1, progress=False)
+
+
+def test_varied_scenes_change_the_ground_per_run_keep_the_drones_and_repeat(
+    smoke_dataset, tmp_path
+) -> None:
+    source = open_dataset(smoke_dataset)
+    root = tmp_path / "varied"
+    out = rerender(smoke_dataset, root, "raycast-aa", workers=1, progress=False, vary_scene=3)
+    plain = rerender(smoke_dataset, tmp_path / "plain", "raycast-aa", workers=1, progress=False)
+    assert out.manifest["scene_variation"]["seed"] == 3
+    assert out.id != plain.id  # a varied redraw is another dataset
+    a, b = plain.split("train"), out.split("train")
+    np.testing.assert_array_equal(a.targets, b.targets)
+    # the sky and ground change, the drones stay: their dark pixels stay darker than any ground
+    first = np.asarray(a.images).astype(int)
+    varied = np.asarray(b.images).astype(int)
+    assert np.abs(first - varied).mean() > 2.0
+    drone = first < 60
+    assert drone.sum() > 100
+    assert (varied[drone] < 100).mean() > 0.9
+    # two runs get two scenes: the mean sky brightness differs between runs
+    runs = sorted(stored_runs(root, "train"))
+    assert len(runs) >= 2
+    tops = [np.load(run_path(root, "train", k))["images"][:, :8, :256].mean() for k in runs[:2]]
+    assert abs(tops[0] - tops[1]) > 0.5
+    # the same seed redraws the same bytes
+    again = rerender(
+        smoke_dataset, tmp_path / "again", "raycast-aa", workers=1, progress=False, vary_scene=3
+    )
+    assert again.id == out.id
+    assert (
+        run_path(root, "train", runs[0]).read_bytes()
+        == run_path(tmp_path / "again", "train", runs[0]).read_bytes()
+    )
+    assert source.manifest["counts"] == out.manifest["counts"]
+
+
+def test_a_negative_scene_seed_is_refused_naming_the_option(smoke_dataset, tmp_path) -> None:
+    with pytest.raises(ConfigError, match="vary-scene"):
+        rerender(
+            smoke_dataset, tmp_path / "x", "raycast-aa", workers=1, progress=False, vary_scene=-1
+        )

@@ -155,3 +155,37 @@ def test_the_faster_flock_flies_faster_than_the_common_goal() -> None:
         speeds[key] = float(np.linalg.norm(cruise.mean(axis=1), axis=-1).mean())
     assert speeds["common"] < 1.9
     assert speeds["vmax4"] > 1.6 and speeds["vmax4"] > 1.5 * speeds["common"], speeds
+
+
+def test_an_unseen_ground_changes_what_the_cnn_sees_and_not_the_teacher() -> None:
+    from sim_harness.experiments.suites import SHIPPED_MODEL_PATH
+
+    flights = {}
+    for ground in (None, 3):
+        config = SuiteConfig(
+            suite="paper",
+            model_path=SHIPPED_MODEL_PATH,
+            n_seeds=1,
+            seed_base=1010,
+            duration_s=0.6,
+            experiments=("common",),
+            renderer="raycast-aa",
+            ground_seed=ground,
+        )
+        flights[ground] = {r.controller: r.log for r in run_suite(config).runs}
+    teacher, other_teacher = flights[None]["teacher"], flights[3]["teacher"]
+    np.testing.assert_array_equal(teacher.pos_world_enu, other_teacher.pos_world_enu)
+    cnn, other_cnn = flights[None]["cnn"], flights[3]["cnn"]
+    np.testing.assert_array_equal(cnn.pos_world_enu[0], other_cnn.pos_world_enu[0])
+    seen, unseen = cnn.setpoint_world_enu[:-1], other_cnn.setpoint_world_enu[:-1]  # last row NaN
+    assert np.isfinite(seen).all() and np.abs(seen - unseen).max() > 1e-3
+
+
+def test_the_unseen_ground_is_a_seeded_scene_and_a_bad_seed_names_the_field() -> None:
+    from sim_harness.sim.scene import SceneSpec, unseen_scene
+
+    assert unseen_scene(None) is None
+    assert unseen_scene(4) == unseen_scene(4) != unseen_scene(5)
+    assert unseen_scene(4) != SceneSpec()
+    with pytest.raises(ConfigError, match="experiments.ground"):
+        SuiteConfig(ground_seed=-1)

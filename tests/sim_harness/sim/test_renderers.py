@@ -4,6 +4,7 @@ import argparse
 import json
 import logging
 
+import numpy as np
 import pytest
 
 from sim_harness.dataset.spec import DatasetSpec
@@ -18,6 +19,8 @@ from sim_harness.sim.renderers import (
     renderer_of_model,
     warn_if_trained_elsewhere,
 )
+from sim_harness.sim.scene import SCENE_RANGES, SceneSpec, ground_texture, random_scene
+from sim_harness.sim.world import World
 
 
 def test_names_make_their_renderers() -> None:
@@ -79,3 +82,28 @@ def test_a_flight_on_another_renderer_warns_once(caplog) -> None:
     assert len(warnings) == 1
     assert "trained on raycast images" in warnings[0].getMessage()
     assert model_renderer({}) == "pybullet"
+
+
+def test_random_scenes_stay_in_their_ranges_and_keep_the_ground_above_the_drones() -> None:
+    rng = np.random.default_rng(0)
+    scenes = [random_scene(rng) for _ in range(50)]
+    assert len({s.ground_seed for s in scenes}) == 50
+    for s in scenes:
+        assert SCENE_RANGES["ground_mean"][0] <= s.ground_mean <= SCENE_RANGES["ground_mean"][1]
+        assert (
+            SCENE_RANGES["ground_tile_m"][0] <= s.ground_tile_m <= SCENE_RANGES["ground_tile_m"][1]
+        )
+        assert s.sky_zenith_gray < s.sky_horizon_gray
+    texture = ground_texture(scenes[0])
+    assert texture.min() >= 100 and texture.max() <= 210
+
+
+def test_a_renderer_draws_the_scene_it_is_given() -> None:
+    pos = np.array([[0.0, 0.0, 5.0]])
+    level = np.array([[1.0, 0.0, 0.0, 0.0]])
+    dull = SceneSpec(sky_horizon_gray=215.0, sky_zenith_gray=170.0)
+    with World(1) as world:
+        default = make_renderer("raycast").render(world, pos, level).astype(int)
+        other = make_renderer("raycast", dull).render(world, pos, level).astype(int)
+    top_rows = slice(0, 8)  # the lateral faces' upper rows: sky
+    assert (default[0, top_rows, :256] - other[0, top_rows, :256]).mean() > 10.0
