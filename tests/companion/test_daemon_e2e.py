@@ -245,7 +245,11 @@ def test_flies_hovers_recovers_and_yields_to_the_pilot(
 
             # One camera stops: hover within 0.5 s; it comes back: flying again.
             await hover_within(lambda: cameras.stall("left"))
-            assert "left: stale" in daemon.health.reason
+            # The stalled face is named: skewed (its last frame older than the newest face's by
+            # more than the skew limit) or stale (older than the freshness limit), whichever the
+            # first tick after the stall sees; on a loaded machine that can be either.
+            reason = daemon.health.reason
+            assert "left: stale" in reason or "left: skewed" in reason, reason
             cameras.resume("left")
 
             # NaN model output: hover at once.
