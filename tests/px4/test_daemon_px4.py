@@ -19,6 +19,10 @@ from sim_harness.hil.px4_logic import MavResult, Px4Mode
 COMMANDED_MPS = 1.5  # the constant policy's forward speed (tests/px4/conftest.py)
 ENGAGE_GUARD_S = 40.0  # start-up (torch, MAVSDK, health) + pre-stream + heartbeat; ~5-8 s here
 HEARTBEAT_SLACK_S = 1.3  # PX4's heartbeat is 1 Hz on the GCS link
+# PX4 times the offboard loss from the last setpoint it received, which comes before the kill by
+# up to a control period (10 Hz), by more when the daemon was starved on a loaded machine
+# (0.9995 s after the kill seen in CI under two busy loops).
+LAST_SETPOINT_SLACK_S = 0.2
 
 
 def heading_ned_rad(gcs: GroundStation) -> float:
@@ -169,7 +173,8 @@ def test_sigkill_with_the_shipped_parameters_ends_in_hold_after_com_of_loss_t(
     vehicle = shipped
     after_s, mode = sigkill_ends_in_px4_failsafe(vehicle, daemon_run)
     assert mode is Px4Mode.HOLD  # COM_OBL_RC_ACT 5
-    assert 1.0 <= after_s <= 1.0 + HEARTBEAT_SLACK_S  # COM_OF_LOSS_T 1 s, heartbeat-timed
+    # COM_OF_LOSS_T 1 s (not an earlier timeout), as the 1 Hz heartbeat shows it
+    assert 1.0 - LAST_SETPOINT_SLACK_S <= after_s <= 1.0 + HEARTBEAT_SLACK_S
 
     # systemd restarts the daemon. PX4 still intends OFFBOARD and would resume it on the first
     # setpoint (issue 19 finding 2): the new daemon re-asserts Hold, then streams; the vehicle
