@@ -49,6 +49,13 @@ def add_learning_commands(sub: Any) -> None:
     t.add_argument("--batch-size", type=int, default=128)
     t.add_argument("--lr", type=float, default=5e-3)
     t.add_argument("--seed", type=int, default=0)
+    t.add_argument(
+        "--dropout",
+        type=float,
+        default=0.5,
+        help="dropout probability before the linear head (default 0.5, the paper's; lower "
+        "shrinks the rare large commands less: models/README.md)",
+    )
     t.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     t.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     t.add_argument("--limit-train", type=int, default=None, help="train on N samples (quick runs)")
@@ -170,6 +177,7 @@ def _train(args: argparse.Namespace) -> int:
         max_epochs=args.max_epochs,
         batch_size=args.batch_size,
         lr=args.lr,
+        dropout=args.dropout,
         seed=args.seed,
         device=args.device,
         threads=args.threads,

@@ -52,6 +52,7 @@ def test_fly_writes_summary_log_and_figures(tmp_path, capsys) -> None:
         (["fly", "--vmax", "-2"], "flocking.v_max_mps"),
         (["fly", "--scenario", "spiral"], "unknown name 'spiral'"),
         (["fly", "--physics-hz", "95"], "rates.physics_hz"),
+        (["train", "--dataset", "data/x", "--dropout", "1"], "dropout"),
     ],
 )
 def test_bad_input_is_one_clear_line_and_exit_2(args, field, tmp_path) -> None:
@@ -93,3 +94,17 @@ def test_an_unwritable_output_folder_is_refused_before_the_work(
     err = capsys.readouterr().err.strip()
     assert err.startswith("swarm-sim: error: out: cannot write to the folder /proc/forbidden (")
     assert err.endswith("); choose a writable folder") and "\n" not in err
+
+
+def test_train_passes_the_head_dropout_through(monkeypatch, tmp_path) -> None:
+    seen = []
+
+    def capture(config):
+        seen.append(config)
+        raise SystemExit(0)
+
+    monkeypatch.setattr("sim_harness.learning.train.train", capture)
+    for extra, expected in (([], 0.5), (["--dropout", "0"], 0.0)):
+        with pytest.raises(SystemExit):
+            main(["train", "--dataset", "data/x", "--out", str(tmp_path / "run"), *extra])
+        assert seen[-1].dropout == expected

@@ -273,6 +273,7 @@ def test_weighting_moves_the_fit_towards_the_rare_large_commands() -> None:
         ({"momentum": 1.0}, "momentum"),
         ({"limit_train": 0}, "limit_train"),
         ({"grad_clip_norm": 0.0}, "grad_clip_norm"),
+        ({"dropout": 1.0}, "dropout"),
     ],
 )
 def test_bad_settings_name_the_field(tmp_path, overrides, field) -> None:
