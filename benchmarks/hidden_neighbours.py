@@ -69,6 +69,7 @@ def visible(pos: np.ndarray) -> np.ndarray:
 def measure_case(key: str, seeds: list[int]) -> dict[str, Any]:
     scenario_name, n, duration = CASES[key]
     params = FlockingParams()
+    everyone = ~np.eye(n, dtype=bool)
     full_norm, diff_norm, along, nearest, hidden = [], [], [], [], []
     for seed in seeds:
         config = ScenarioConfig(
@@ -77,7 +78,6 @@ def measure_case(key: str, seeds: list[int]) -> dict[str, Any]:
         log = fly(build_scenario(config), TeacherController(params))
         for pos in log.pos_world_enu[:-1]:
             offsets = pairwise_offsets(pos)
-            everyone = ~np.eye(n, dtype=bool)
             seen = visible(pos)
             sep, coh, _ = reynolds_from_offsets(offsets, everyone, params)
             sep_v, coh_v, _ = reynolds_from_offsets(offsets, seen, params)
