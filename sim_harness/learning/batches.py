@@ -11,7 +11,7 @@ from __future__ import annotations
 import queue
 import threading
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
@@ -19,6 +19,18 @@ import torch
 from numpy.typing import NDArray
 
 T = TypeVar("T")
+
+
+class ImageRows(Protocol):
+    """uint8 images (n, 64, 384) indexed by row: a numpy array, a memmap or `StackedImages`."""
+
+    @property
+    def shape(self) -> tuple[int, ...]: ...
+
+    @property
+    def nbytes(self) -> int: ...
+
+    def __getitem__(self, index: Any, /) -> Any: ...
 
 
 class SplitArrays(Protocol):
@@ -32,7 +44,7 @@ class SplitArrays(Protocol):
     def n_samples(self) -> int: ...
 
     @property
-    def images(self) -> NDArray[np.uint8]: ...
+    def images(self) -> ImageRows: ...
 
     @property
     def targets(self) -> NDArray[np.float32]: ...
@@ -54,11 +66,77 @@ class InMemorySplit:
         return int(self.images.shape[0])
 
 
-def concat_splits(parts: list[SplitArrays]) -> InMemorySplit:
-    """One in-RAM split holding every sample of `parts` in order (meta: the columns all share)."""
+class StackedImages:
+    """Several (n_k, 64, 384) uint8 arrays read as one, in order, without copying them.
+
+    The parts stay where they are (a dataset's split is a read-only memmap of its image cache),
+    so training on a base dataset plus aggregation rounds and extra linear sets needs the page
+    cache, not RAM the size of every image. Indexing takes what training and evaluation use: an
+    int, a slice, or an integer index array (sorted rows read each part's file forward).
+    """
+
+    def __init__(self, parts: list[NDArray[np.uint8]]) -> None:
+        if not parts:
+            raise ValueError("no image arrays to stack")
+        frame = parts[0].shape[1:]
+        if any(part.shape[1:] != frame or part.dtype != np.uint8 for part in parts):
+            raise ValueError(f"every part must be uint8 images of shape (n, {frame})")
+        self.parts = parts
+        self.starts = np.cumsum([0] + [part.shape[0] for part in parts])
+        self.shape: tuple[int, ...] = (int(self.starts[-1]), *frame)
+        self.dtype = np.dtype(np.uint8)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    @property
+    def nbytes(self) -> int:
+        return int(np.prod(self.shape))
+
+    def __getitem__(self, index: int | slice | NDArray[np.integer]) -> NDArray[np.uint8]:
+        if isinstance(index, slice):
+            return self[np.arange(*index.indices(len(self)))]
+        rows = np.asarray(index)
+        if rows.ndim == 0:
+            return self[rows[None]][0]
+        if rows.dtype.kind not in "iu":
+            raise IndexError(f"stacked images take integer rows, got {rows.dtype}")
+        rows = np.where(rows < 0, rows + len(self), rows)
+        if rows.size and (rows.min() < 0 or rows.max() >= len(self)):
+            raise IndexError(f"rows out of range for {len(self)} images")
+        part_of = np.searchsorted(self.starts, rows, side="right") - 1
+        out = np.empty((rows.size, *self.shape[1:]), dtype=np.uint8)
+        for k in np.unique(part_of):
+            mine = part_of == k
+            out[mine] = self.parts[k][rows[mine] - self.starts[k]]
+        return out
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> NDArray[Any]:
+        whole = self[slice(None)]
+        return whole if dtype is None else whole.astype(dtype)
+
+
+@dataclass(frozen=True)
+class JoinedSplit:
+    """Several splits read as one: images stacked in place, targets and meta joined in RAM."""
+
+    images: StackedImages
+    targets: NDArray[np.float32]
+    meta: Mapping[str, NDArray[Any]]
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.images)
+
+
+def concat_splits(parts: list[SplitArrays]) -> JoinedSplit:
+    """One split holding every sample of `parts` in order (meta: the columns all share).
+
+    The images are not copied (`StackedImages`); the small per-sample arrays are.
+    """
     keys = set.intersection(*(set(part.meta) for part in parts))
-    return InMemorySplit(
-        images=np.concatenate([np.asarray(part.images) for part in parts]),
+    return JoinedSplit(
+        images=StackedImages([part.images for part in parts]),
         targets=np.concatenate([np.asarray(part.targets, dtype=np.float32) for part in parts]),
         meta={key: np.concatenate([np.asarray(part.meta[key]) for part in parts]) for key in keys},
     )
@@ -112,11 +190,14 @@ def shuffled_batches(
     return [np.sort(order[i : i + batch_size]) for i in range(0, n, batch_size)]
 
 
-def with_repeats(split: InMemorySplit, counts: NDArray[np.int64]) -> InMemorySplit:
+_Split = TypeVar("_Split", InMemorySplit, JoinedSplit)
+
+
+def with_repeats(split: _Split, counts: NDArray[np.int64]) -> _Split:
     """`split` with a per-sample repeat count (see `epoch_rows`)."""
     if counts.shape != (split.n_samples,) or (counts < 1).any():
         raise ValueError(f"need one count >= 1 per sample ({split.n_samples})")
-    return InMemorySplit(split.images, split.targets, {**split.meta, REPEAT_COLUMN: counts})
+    return replace(split, meta={**split.meta, REPEAT_COLUMN: counts})
 
 
 def sequential_batches(n: int, batch_size: int) -> list[slice]:

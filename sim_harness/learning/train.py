@@ -31,7 +31,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +40,6 @@ import torch
 
 from companion.errors import ConfigError
 from sim_harness.learning.batches import (
-    InMemorySplit,
     SplitArrays,
     concat_splits,
     epoch_rows,
@@ -213,7 +212,7 @@ def train(config: TrainConfig) -> TrainResult:
         joined = concat_splits(parts)
         part_of_row = np.repeat(np.arange(len(parts)), [p.n_samples for p in parts])
         meta = {**joined.meta, PART_COLUMN: part_of_row}  # flocks never span two folders
-        joined = InMemorySplit(joined.images, joined.targets, meta)
+        joined = replace(joined, meta=meta)
         times = [1] + [config.extra_train.count(root) for root in roots]
         counts = np.repeat(times, [part.n_samples for part in parts]).astype(np.int64)
         train_split = with_repeats(joined, counts) if max(times) > 1 else joined

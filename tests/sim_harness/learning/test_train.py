@@ -2,6 +2,7 @@
 
 import itertools
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +12,9 @@ from companion.errors import ConfigError
 from sim_harness.dataset.store import open_dataset
 from sim_harness.learning.batches import (
     InMemorySplit,
+    concat_splits,
     epoch_rows,
+    load_batch,
     prefetch,
     shuffled_batches,
     subset,
@@ -367,3 +370,38 @@ def test_resume_refuses_optimizer_state_that_does_not_fit_naming_the_parameter()
     optimizer = torch.optim.SGD(after.parameters(), lr=0.1, momentum=0.9)
     with pytest.raises(CheckpointError, match="momentum_buffer for norm has shape"):
         load_optimizer_state(optimizer, after, saved)
+
+
+def test_joined_splits_read_every_image_in_place_and_in_order(tmp_path: Path) -> None:
+    # two memmapped "datasets" joined for training: nothing is copied into RAM up front, and any
+    # rows (sorted batches, unsorted picks, slices, negative indices) read the right images
+    rng = np.random.default_rng(0)
+    arrays = []
+    for k, n in enumerate((7, 5)):
+        path = tmp_path / f"images-{k}.npy"
+        mm = np.lib.format.open_memmap(path, mode="w+", dtype=np.uint8, shape=(n, 64, 384))
+        mm[:] = rng.integers(0, 256, size=mm.shape, dtype=np.uint8)
+        mm.flush()
+        arrays.append(np.load(path, mmap_mode="r"))
+    parts = [
+        InMemorySplit(a, np.full((len(a), 3), k, np.float32), {"nearest_m": np.arange(len(a))})
+        for k, a in enumerate(arrays)
+    ]
+    joined = concat_splits(parts)
+    whole = np.concatenate(arrays)
+    assert joined.n_samples == 12 and joined.images.nbytes == whole.nbytes
+    assert all(isinstance(part, np.memmap) for part in joined.images.parts)
+    for rows in (np.array([0, 3, 6, 7, 11]), np.array([11, 2, 8, 2]), np.arange(12)):
+        assert np.array_equal(joined.images[rows], whole[rows])
+    assert np.array_equal(joined.images[5:9], whole[5:9])
+    assert np.array_equal(joined.images[-1], whole[-1])
+    assert joined.targets[:, 0].tolist() == [0.0] * 7 + [1.0] * 5
+    assert joined.meta["nearest_m"].tolist() == [*range(7), *range(5)]
+    images, targets = load_batch(joined, np.array([6, 7]))
+    assert np.array_equal(images.numpy(), whole[[6, 7]]) and targets[:, 0].tolist() == [0.0, 1.0]
+    # a joined split larger than the RAM allowance is trained on in place, a small one copied
+    assert subset(joined, None, seed=0, ram_max_bytes=whole.nbytes - 1) is joined
+    small = subset(joined, None, seed=0, ram_max_bytes=whole.nbytes)
+    assert isinstance(small, InMemorySplit) and np.array_equal(small.images, whole)
+    with pytest.raises(IndexError, match="out of range"):
+        joined.images[np.array([12])]
