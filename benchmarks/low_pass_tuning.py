@@ -36,12 +36,18 @@ def _cutoff(text: str) -> float | None:
     return None if text in ("off", "none") else float(text)
 
 
-def training_seeds(text: str) -> list[int]:
-    """'900,901' or '900-919' (inclusive), or both mixed; refuses evaluation seeds (>= 1000)."""
+def seed_ranges(text: str) -> list[int]:
+    """'900,901' or '900-919' (inclusive), or both mixed."""
     seeds: list[int] = []
     for part in text.split(","):
         first, _, last = part.partition("-")
         seeds += range(int(first), int(last or first) + 1)
+    return seeds
+
+
+def training_seeds(text: str) -> list[int]:
+    """As `seed_ranges`, refusing evaluation seeds (>= 1000)."""
+    seeds = seed_ranges(text)
     if max(seeds) >= EVAL_SEED_BASE:
         raise ConfigError(f"seeds: tune on training seeds (< {EVAL_SEED_BASE}), got {seeds}")
     return seeds

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 from cnn_latency import RESULTS, machine, write_report
+from low_pass_tuning import seed_ranges
 
 from companion.flocking import FlockingParams, cap_speed, command_from_offsets
 from sim_harness.experiments.suites import EXPERIMENTS
@@ -80,18 +81,9 @@ def closest_pair(experiment: str, seed: int, jitter_mps: float, draw: int) -> fl
     return float(summarize(fly(scenario, controller))["d_min_m"])
 
 
-def seed_list(text: str) -> list[int]:
-    """'1000-1019' (inclusive), '1000,1003' or both mixed."""
-    seeds: list[int] = []
-    for part in text.split(","):
-        first, _, last = part.partition("-")
-        seeds += range(int(first), int(last or first) + 1)
-    return seeds
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=seed_list, default=seed_list("1000-1019"))
+    parser.add_argument("--seeds", type=seed_ranges, default=seed_ranges("1000-1019"))
     parser.add_argument("--jitter", default="1e-6,1e-3", help="noise sizes, m/s, comma-separated")
     parser.add_argument("--draws", type=int, default=3, help="noise draws per seed and size")
     parser.add_argument("--experiments", default="opposing,n12,vmax4,common")
