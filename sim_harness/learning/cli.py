@@ -103,6 +103,22 @@ def add_learning_commands(sub: Any) -> None:
     )
     t.add_argument("--weight-cap", type=float, default=4.0, help="largest weight (default 4)")
     t.add_argument(
+        "--weight-shortfall",
+        type=float,
+        default=None,
+        metavar="K",
+        help="add K x the squared shortfall of the answer along the teacher's command on samples "
+        "with a neighbour closer than --shortfall-within: close-range separation answered too "
+        "strong rather than too weak (default: off)",
+    )
+    t.add_argument(
+        "--shortfall-within",
+        type=float,
+        default=1.2,
+        metavar="M",
+        help="nearest-neighbour distance under which --weight-shortfall applies (default 1.2 m)",
+    )
+    t.add_argument(
         "--weight-flock",
         type=float,
         default=None,
@@ -190,6 +206,8 @@ def _train(args: argparse.Namespace) -> int:
         weight_speed_mps=args.weight_speed,
         weight_near_m=args.weight_near,
         weight_cap=args.weight_cap,
+        weight_shortfall=args.weight_shortfall,
+        shortfall_within_m=args.shortfall_within,
         weight_flock=args.weight_flock,
         lr_schedule=args.lr_schedule,
         progress=not args.no_progress,

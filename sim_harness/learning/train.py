@@ -72,7 +72,7 @@ from sim_harness.learning.flock_loss import (
 )
 from sim_harness.learning.lr_schedule import cosine_lr
 from sim_harness.learning.model import DroNet, build_model, parameter_groups
-from sim_harness.learning.sample_weights import SampleWeighting, weighted_velocity_loss
+from sim_harness.learning.sample_weights import SampleWeighting
 from sim_harness.learning.symmetry import augment_with_views
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
 from sim_harness.sim.progress import progress_bar
@@ -121,8 +121,8 @@ def _train_epoch(
     """One pass over `batches`; returns (mean training loss, samples/s, fraction clipped).
 
     `weighting`: the per-sample loss weights, or None for the plain mean squared error; the
-    returned loss is the one minimized (weighted when weighting). A close-range weighting reads
-    the split's "nearest_m" column.
+    returned loss is the one minimized (weighted when weighting). A close-range weighting and the
+    shortfall term read the split's "nearest_m" column.
 
     `augment_group`: each sample is shown in a random view of this symmetry group with its label
     transformed to match (`learning.symmetry.augment`), drawn from a generator seeded by
@@ -144,7 +144,7 @@ def _train_epoch(
         # the symmetries move no drone, so the nearest neighbour's distance stays the sample's
         nearest = torch.from_numpy(
             np.asarray(split.meta["nearest_m"][rows], dtype=np.float32)
-            if weighting is not None and weighting.near_m is not None
+            if weighting is not None and weighting.needs_nearest
             else np.zeros(0, dtype=np.float32)
         )
         tensors: tuple[torch.Tensor, ...] = (images, targets, nearest)
@@ -174,7 +174,7 @@ def _train_epoch(
             if weighting is None:
                 loss = velocity_loss(pred, targets)
             else:
-                loss = weighted_velocity_loss(pred, targets, weighting.weights(targets, nearest))
+                loss = weighting.loss(pred, targets, nearest)
             if flock is not None:
                 to_world, local = flock_tensors
                 term = flock_term(pred - targets, to_world, local, int(local.max().item()) + 1)
@@ -296,10 +296,13 @@ def train_on(
     ram_max = int(config.ram_max_gib * 2**30)
     train_data = subset(train_split, config.limit_train, config.seed, ram_max)
     rows = epoch_rows(train_data)
-    if config.weight_near_m is not None and "nearest_m" not in train_data.meta:
+    needs_nearest = [
+        name for name in ("weight_near_m", "weight_shortfall") if getattr(config, name) is not None
+    ]
+    if needs_nearest and "nearest_m" not in train_data.meta:
         raise ConfigError(
-            "weight_near_m: the training data lacks the per-sample column nearest_m (a dataset "
-            "written by `swarm-sim dataset generate` or `aggregate` has it)"
+            f"{needs_nearest[0]}: the training data lacks the per-sample column nearest_m "
+            "(a dataset written by `swarm-sim dataset generate` or `aggregate` has it)"
         )
     flock = None
     if config.weight_flock is not None:

@@ -61,6 +61,12 @@ class TrainConfig:
     # weight_speed_mps too, a sample takes the larger of its two weights); None: off
     weight_near_m: float | None = None
     weight_cap: float = 4.0
+    # add weight_shortfall x the squared shortfall of the answer along the teacher's command
+    # on samples whose nearest neighbour is closer than shortfall_within_m
+    # (`sample_weights.shortfall`): where the image leaves the distance uncertain, answer the
+    # separation too strong rather than too weak; None: off
+    weight_shortfall: float | None = None
+    shortfall_within_m: float = 1.2
     # add the flock-sum term (`sim_harness.learning.flock_loss`) with this weight: errors that a
     # whole flock shares at one time step cost more than independent ones; None: off
     weight_flock: float | None = None
@@ -96,6 +102,11 @@ class TrainConfig:
         if self.weight_near_m is not None:
             require_range("weight_near_m", self.weight_near_m, 0.0, 20.0, low_inclusive=False)
         require_range("weight_cap", self.weight_cap, 1.0, None)
+        if self.weight_shortfall is not None:
+            require_range(
+                "weight_shortfall", self.weight_shortfall, 0.0, 100.0, low_inclusive=False
+            )
+        require_range("shortfall_within_m", self.shortfall_within_m, 0.0, 20.0, low_inclusive=False)
         if self.weight_flock is not None:
             require_range("weight_flock", self.weight_flock, 0.0, 100.0, low_inclusive=False)
         if self.lr_schedule not in LR_SCHEDULES:

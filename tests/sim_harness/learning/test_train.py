@@ -33,6 +33,7 @@ from sim_harness.learning.model import build_model
 from sim_harness.learning.sample_weights import (
     SampleWeighting,
     near_weights,
+    shortfall,
     speed_weights,
     weighted_velocity_loss,
 )
@@ -222,23 +223,63 @@ def test_a_sample_takes_the_larger_of_its_speed_and_close_range_weights() -> Non
     assert speed_only.tolist() == pytest.approx([3.0, 1.0, 1.0])
 
 
+def test_the_shortfall_counts_only_a_close_answer_short_along_the_target() -> None:
+    target = torch.tensor([[2.0, 0.0, 0.0]] * 4 + [[0.0, 0.0, 0.0]])
+    pred = torch.tensor(
+        [[1.4, 0.0, 0.0], [2.6, 0.0, 0.0], [2.0, 0.5, 0.0], [1.4, 0.0, 0.0], [0.3, 0.0, 0.0]]
+    )
+    nearest = torch.tensor([0.8, 0.8, 0.8, 1.5, 0.8])
+    # short by 0.6 m/s close by; too long, or off to the side: nothing; short but no neighbour
+    # within 1.2 m: nothing; a zero target has no direction to fall short along
+    assert shortfall(pred, target, nearest, 1.2).tolist() == pytest.approx(
+        [0.36 / 3, 0.0, 0.0, 0.0, 0.0]
+    )
+
+
+def test_the_shortfall_term_moves_an_ambiguous_close_fit_towards_the_stronger_answer() -> None:
+    # Two close-range samples the images cannot tell apart, commands 1 and 2 m/s along x: the
+    # plain MSE answers their mean 1.5; with the shortfall term at K = 2 the fit minimizes
+    # (c - 1)^2 + (c - 2)^2 + 2 (2 - c)^2, at c = 7/4: too strong for one, less short for the other.
+    target = torch.tensor([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    nearest = torch.tensor([0.7, 0.7])
+    for weighting, expected in (
+        (None, 1.5),
+        (SampleWeighting(cap=4.0, shortfall_weight=2.0), 1.75),
+    ):
+        c = torch.zeros(1, 3, requires_grad=True)
+        optimizer = torch.optim.SGD([c], lr=0.5)
+        for _ in range(400):
+            pred = c.expand(2, 3)
+            loss = (
+                velocity_loss(pred, target)
+                if weighting is None
+                else weighting.loss(pred, target, nearest)
+            )
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        assert c[0, 0].item() == pytest.approx(expected, abs=1e-4)
+
+
 @pytest.mark.slow
-def test_a_run_weighted_by_the_nearest_neighbour_trains_and_records_it(
-    smoke_dataset, tmp_path
+@pytest.mark.parametrize(("field", "value"), [("weight_near_m", 1.5), ("weight_shortfall", 2.0)])
+def test_a_run_with_a_close_range_loss_trains_and_records_it(
+    smoke_dataset, tmp_path, field, value
 ) -> None:
-    result = train(quick(smoke_dataset, tmp_path / "run", weight_near_m=1.5, max_epochs=2))
+    result = train(quick(smoke_dataset, tmp_path / "run", max_epochs=2, **{field: value}))
     assert result.epochs_run == 2
     assert all(np.isfinite(row["train_loss"]) for row in result.history)
     saved = torch.load(tmp_path / "run" / "last.ckpt", weights_only=False)
-    assert saved["config"]["weight_near_m"] == 1.5
+    assert saved["config"][field] == value
 
 
-def test_a_close_range_weight_without_distances_names_the_field(tmp_path) -> None:
+@pytest.mark.parametrize(("field", "value"), [("weight_near_m", 1.5), ("weight_shortfall", 2.0)])
+def test_a_close_range_loss_without_distances_names_the_field(tmp_path, field, value) -> None:
     images = np.zeros((4, 64, 384), dtype=np.uint8)
     split = InMemorySplit(images, np.zeros((4, 3), dtype=np.float32), {})
     manifest = {"id": "no-distances", "pixel_mean": 128.0, "pixel_std": 64.0}
-    config = quick(tmp_path, tmp_path / "run", weight_near_m=1.5, max_epochs=1)
-    with pytest.raises(ConfigError, match="weight_near_m.*nearest_m"):
+    config = quick(tmp_path, tmp_path / "run", max_epochs=1, **{field: value})
+    with pytest.raises(ConfigError, match=f"{field}.*nearest_m"):
         train_on(config, manifest, split, split)
     assert not (tmp_path / "run" / "last.ckpt").exists()
 
@@ -269,6 +310,8 @@ def test_weighting_moves_the_fit_towards_the_rare_large_commands() -> None:
         ({"weight_cap": 0.5}, "weight_cap"),
         ({"weight_near_m": 0.0}, "weight_near_m"),
         ({"weight_near_m": float("nan")}, "weight_near_m"),
+        ({"weight_shortfall": 0.0}, "weight_shortfall"),
+        ({"shortfall_within_m": -1.0}, "shortfall_within_m"),
         ({"lr_schedule": "linear"}, "lr_schedule"),
         ({"batch_size": 0}, "batch_size"),
         ({"lr": -1.0}, "lr"),
