@@ -112,8 +112,7 @@ def shortfall(
     / 3 with u the target's direction (zero for a zero target); 0 for every other sample. An
     answer longer than the target along it, or off to its side, costs nothing here.
     """
-    speed = target.norm(dim=1, keepdim=True)
-    direction = torch.where(speed > 1e-6, target / speed.clamp(min=1e-6), torch.zeros_like(target))
+    direction = target / target.norm(dim=1, keepdim=True).clamp(min=1e-6)  # a zero target: zero
     short = (-((pred - target) * direction).sum(dim=1)).clamp(min=0.0)
     return (nearest_m < within_m).to(pred.dtype) * short.square() / 3.0
 
