@@ -1,5 +1,5 @@
-"""`swarm-sim dataset generate | inspect | merge | rerender` (`aggregate` flies the CNN:
-experiments/cli)."""
+"""`swarm-sim dataset generate | inspect | merge | rerender | close-range` (`aggregate` flies the
+CNN: experiments/cli)."""
 
 from __future__ import annotations
 
@@ -92,6 +92,24 @@ def add_dataset_commands(sub: Any) -> Any:
     )
     r.add_argument("--no-progress", action="store_true")
     r.set_defaults(handler=_rerender)
+    c = dsub.add_parser(
+        "close-range",
+        help="close encounters from a dataset's flocks: one pair brought within 0.4-1.1 m per step",
+        description="For some steps of every run of a complete dataset, move one drone's nearest "
+        "neighbour along their line to a distance drawn in [--min, --max] m, draw the whole flock "
+        "again and label every drone with the teacher's command of the new positions: the close "
+        "range that flights almost never reach, with exact labels. Interrupted? Run the same "
+        "command again.",
+    )
+    c.add_argument("source", type=Path, help="a complete dataset (default scene)")
+    c.add_argument("--out", type=Path, required=True, help="the new dataset's folder")
+    c.add_argument("--steps-per-run", type=int, default=30, help="steps drawn a run (default 30)")
+    c.add_argument("--min", dest="min_m", type=float, default=0.4, help="metres (default 0.4)")
+    c.add_argument("--max", dest="max_m", type=float, default=1.1, help="metres (default 1.1)")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    c.add_argument("--no-progress", action="store_true")
+    c.set_defaults(handler=_close_range)
     return dsub
 
 
@@ -172,6 +190,31 @@ def _rerender(args: argparse.Namespace) -> int:
     counts = dataset.manifest["counts"]
     print(
         f"wrote {args.out} ({args.renderer}): train {counts['train']}, val {counts['val']}, "
+        f"test {counts['test']} samples"
+    )
+    return 0
+
+
+def _close_range(args: argparse.Namespace) -> int:
+    from sim_harness.dataset.close_range import close_range
+
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    require_writable_dir(args.out)
+    dataset = close_range(
+        args.source,
+        args.out,
+        steps_per_run=args.steps_per_run,
+        min_m=args.min_m,
+        max_m=args.max_m,
+        seed=args.seed,
+        workers=args.workers,
+        progress=not args.no_progress,
+        command=command_line(),
+    )
+    counts = dataset.manifest["counts"]
+    print(
+        f"wrote {args.out}: train {counts['train']}, val {counts['val']}, "
         f"test {counts['test']} samples"
     )
     return 0

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from companion.validation import require_int_range
 from sim_harness.dataset.generate import check_or_write_spec, finalize
@@ -47,8 +48,8 @@ from sim_harness.sim.renderers import make_renderer, require_renderer
 from sim_harness.sim.scene import SCENE_RANGES, SceneSpec, random_scene
 from sim_harness.sim.world import World
 
-_IMAGE_KEYS = ("images", "pixel_sum", "pixel_sumsq")
-_SCALAR_KEYS = ("run_index", "termination", "migration_point_world_enu")
+IMAGE_KEYS = ("images", "pixel_sum", "pixel_sumsq")
+SCALAR_KEYS = ("run_index", "termination", "migration_point_world_enu")
 
 
 def run_scene(vary_scene: int | None, split: str, run_index: int) -> SceneSpec | None:
@@ -58,22 +59,29 @@ def run_scene(vary_scene: int | None, split: str, run_index: int) -> SceneSpec |
     return random_scene(np.random.default_rng([vary_scene, SPLITS.index(split), run_index]))
 
 
+def flock_steps(agent: NDArray[np.generic], what: str) -> tuple[int, int]:
+    """(steps, agents) of a run whose samples are every agent at every step, in that order (its
+    `agent` column); a DatasetError naming `what` otherwise."""
+    agent = np.asarray(agent, dtype=np.intp)
+    n_agents = int(agent.max()) + 1 if agent.size else 0
+    n_steps, rest = divmod(len(agent), max(n_agents, 1))
+    if not n_agents or rest or not np.array_equal(agent, np.tile(np.arange(n_agents), n_steps)):
+        raise DatasetError(
+            f"{what}: its samples are not every agent at every step, so the flock of a step "
+            "cannot be put back"
+        )
+    return n_steps, n_agents
+
+
 def redraw_run(
     source: Path, split: str, run_index: int, renderer_name: str, vary_scene: int | None = None
 ) -> bytes:
     """The bytes of run `run_index` of `split` of the dataset at `source`, its images redrawn."""
     with np.load(run_path(source, split, run_index)) as z:
-        arrays = {k: z[k] for k in z.files if k not in _IMAGE_KEYS + _SCALAR_KEYS}
+        arrays = {k: z[k] for k in z.files if k not in IMAGE_KEYS + SCALAR_KEYS}
         termination = str(z["termination"])
         migration = np.asarray(z["migration_point_world_enu"], dtype=np.float64)
-    agent = arrays["agent"].astype(np.intp)
-    n_agents = int(agent.max()) + 1
-    n_steps, rest = divmod(len(agent), n_agents)
-    if rest or not np.array_equal(agent, np.tile(np.arange(n_agents), n_steps)):
-        raise DatasetError(
-            f"run {split}/{run_index} of {source}: its samples are not every agent at every "
-            "step, so the flock of a step cannot be put back"
-        )
+    n_steps, n_agents = flock_steps(arrays["agent"], f"run {split}/{run_index} of {source}")
     pos = arrays["pos_world_enu"].astype(np.float64).reshape(n_steps, n_agents, 3)
     q = arrays["q_world_body"].astype(np.float64).reshape(n_steps, n_agents, 4)
     renderer = make_renderer(renderer_name, run_scene(vary_scene, split, run_index))
