@@ -196,18 +196,16 @@ def _rerender(args: argparse.Namespace) -> int:
 
 
 def _close_range(args: argparse.Namespace) -> int:
-    from sim_harness.dataset.close_range import close_range
+    from sim_harness.dataset.close_range import CloseRangeDraw, close_range
 
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
+    draw = CloseRangeDraw(args.steps_per_run, args.min_m, args.max_m, args.seed)
     require_writable_dir(args.out)
     dataset = close_range(
         args.source,
         args.out,
-        steps_per_run=args.steps_per_run,
-        min_m=args.min_m,
-        max_m=args.max_m,
-        seed=args.seed,
+        draw,
         workers=args.workers,
         progress=not args.no_progress,
         command=command_line(),

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -147,28 +148,39 @@ def _draw_and_store(out: Path, source: Path, split: str, run_index: int, *args: 
     write_run_bytes(out, split, run_index, close_range_run(source, split, run_index, *args))
 
 
+@dataclass(frozen=True)
+class CloseRangeDraw:
+    """What is drawn: `steps_per_run` steps a run, one pair brought to [min_m, max_m] m in each."""
+
+    steps_per_run: int = 30
+    min_m: float = 0.4
+    max_m: float = 1.1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        require_int_range("close-range.steps_per_run", self.steps_per_run, 1, 100_000)
+        require_range("close-range.min_m", self.min_m, 0.2, 5.0)
+        require_range("close-range.max_m", self.max_m, 0.2, 5.0)
+        if self.max_m <= self.min_m:
+            raise ConfigError(
+                f"close-range.max_m: must be above close-range.min_m ({self.min_m} m), "
+                f"got {self.max_m} m"
+            )
+        require_int_range("close-range.seed", self.seed, 0)
+
+
 def close_range(
     source: str | Path,
     out: str | Path,
-    steps_per_run: int = 30,
-    min_m: float = 0.4,
-    max_m: float = 1.1,
-    seed: int = 0,
+    draw: CloseRangeDraw | None = None,
     workers: int | None = None,
     progress: bool = True,
     command: str = "",
 ) -> Dataset:
     """Draw close encounters from every run of the complete dataset at `source` into `out`
-    (resumable): `steps_per_run` steps a run, a pair brought to [min_m, max_m] m in each."""
+    (resumable), as `draw` says (default: `CloseRangeDraw()`)."""
     source, out = Path(source), Path(out)
-    require_int_range("close-range.steps_per_run", steps_per_run, 1, 100_000)
-    require_range("close-range.min_m", min_m, 0.2, 5.0)
-    require_range("close-range.max_m", max_m, 0.2, 5.0)
-    if max_m <= min_m:
-        raise ConfigError(
-            f"close-range.max_m: must be above close-range.min_m ({min_m} m), got {max_m} m"
-        )
-    require_int_range("close-range.seed", seed, 0)
+    draw = draw or CloseRangeDraw()
     if out.resolve() == source.resolve():
         raise DatasetError(
             f"{out}: write the close-range dataset to another folder than its source"
@@ -187,7 +199,7 @@ def close_range(
     runs = {split: [r["run_index"] for r in manifest["splits"][split]["runs"]] for split in SPLITS}
     todo = [(split, k) for split in SPLITS for k in runs[split] if k not in stored_runs(out, split)]
     total = sum(len(v) for v in runs.values())
-    draw = (renderer_name, spec.flocking, steps_per_run, min_m, max_m, seed)
+    args = (renderer_name, spec.flocking, draw.steps_per_run, draw.min_m, draw.max_m, draw.seed)
     with (
         open_pool(workers or os.cpu_count() or 1, None) as pool,
         progress_bar(
@@ -195,7 +207,7 @@ def close_range(
         ) as bar,
     ):
         pending = [
-            pool.submit(_draw_and_store, out, source, split, k, *draw, label=f"{split} run {k}")
+            pool.submit(_draw_and_store, out, source, split, k, *args, label=f"{split} run {k}")
             for split, k in todo
         ]
         while pending:
@@ -203,10 +215,9 @@ def close_range(
                 task.result()  # raises what the draw raised
                 pending.remove(task)
                 bar.update(1)
-    record = {"steps_per_run": steps_per_run, "min_m": min_m, "max_m": max_m, "seed": seed}
     extra: dict[str, Any] = {
         "close_range_from": {"id": manifest["id"], "root": str(source)},
-        "close_range": record,
+        "close_range": asdict(draw),
     }
     if "aggregation" in manifest:
         extra["aggregation"] = manifest["aggregation"]

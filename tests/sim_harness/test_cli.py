@@ -53,6 +53,7 @@ def test_fly_writes_summary_log_and_figures(tmp_path, capsys) -> None:
         (["fly", "--scenario", "spiral"], "unknown name 'spiral'"),
         (["fly", "--physics-hz", "95"], "rates.physics_hz"),
         (["train", "--dataset", "data/x", "--dropout", "1"], "dropout"),
+        (["dataset", "close-range", "data/x", "--min", "0.9", "--max", "0.5"], "close-range.max_m"),
     ],
 )
 def test_bad_input_is_one_clear_line_and_exit_2(args, field, tmp_path) -> None:

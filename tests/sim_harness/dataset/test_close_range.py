@@ -5,7 +5,7 @@ import pytest
 
 from companion.errors import ConfigError
 from companion.flocking import FlockingParams
-from sim_harness.dataset.close_range import close_range, move_nearest_closer
+from sim_harness.dataset.close_range import CloseRangeDraw, close_range, move_nearest_closer
 from sim_harness.dataset.rerender import rerender
 from sim_harness.dataset.runs import teacher_targets
 from sim_harness.dataset.store import open_dataset, run_path, stored_runs
@@ -34,10 +34,7 @@ def test_each_step_gets_one_pair_in_range_the_flock_redrawn_and_labelled_exactly
     out = close_range(
         smoke_dataset,
         tmp_path / "close",
-        steps_per_run=4,
-        min_m=0.5,
-        max_m=0.8,
-        seed=1,
+        CloseRangeDraw(steps_per_run=4, min_m=0.5, max_m=0.8, seed=1),
         workers=1,
         progress=False,
     )
@@ -85,18 +82,18 @@ def test_the_same_seed_draws_the_same_bytes_and_an_interrupted_draw_resumes(
     smoke_dataset, tmp_path
 ) -> None:
     root = tmp_path / "close"
-    first = close_range(smoke_dataset, root, steps_per_run=3, seed=4, workers=1, progress=False)
+    first = close_range(smoke_dataset, root, CloseRangeDraw(3, seed=4), workers=1, progress=False)
     run = min(stored_runs(root, "train"))
     path = run_path(root, "train", run)
     kept = path.read_bytes()
     path.unlink()
     path.with_name(path.name + ".tmp").write_bytes(b"partial")
-    again = close_range(smoke_dataset, root, steps_per_run=3, seed=4, workers=1, progress=False)
+    again = close_range(smoke_dataset, root, CloseRangeDraw(3, seed=4), workers=1, progress=False)
     assert path.read_bytes() == kept
     assert not list(root.glob("runs/*/*.tmp"))
     assert again.id == first.id
     other = close_range(
-        smoke_dataset, tmp_path / "other", steps_per_run=3, seed=5, workers=1, progress=False
+        smoke_dataset, tmp_path / "other", CloseRangeDraw(3, seed=5), workers=1, progress=False
     )
     assert other.id != first.id
 
@@ -118,11 +115,11 @@ def test_a_third_drone_never_ends_closer_than_the_range(tmp_path) -> None:
 
 def test_bad_ranges_and_sources_are_refused_naming_the_field(smoke_dataset, tmp_path) -> None:
     with pytest.raises(ConfigError, match="close-range.max_m"):
-        close_range(smoke_dataset, tmp_path / "x", min_m=0.9, max_m=0.6, progress=False)
+        CloseRangeDraw(min_m=0.9, max_m=0.6)
     with pytest.raises(ConfigError, match="close-range.min_m"):
-        close_range(smoke_dataset, tmp_path / "x", min_m=0.0, progress=False)
+        CloseRangeDraw(min_m=0.0)
     with pytest.raises(ConfigError, match="close-range.steps_per_run"):
-        close_range(smoke_dataset, tmp_path / "x", steps_per_run=0, progress=False)
+        CloseRangeDraw(steps_per_run=0)
     with pytest.raises(DatasetError, match="another folder"):
         close_range(smoke_dataset, smoke_dataset, progress=False)
     varied = rerender(
