@@ -34,19 +34,27 @@ BINS_MPS = (0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0, float("inf"))
 BATCH = 256
 
 
-def shrinkage_table(pred: np.ndarray, target: np.ndarray) -> list[dict[str, Any]]:
-    """One row per |target| bin of `BINS_MPS` that holds samples: (N, 3) answers and targets."""
+def shrinkage_table(
+    pred: np.ndarray,
+    target: np.ndarray,
+    by: np.ndarray | None = None,
+    bins: tuple[float, ...] = BINS_MPS,
+    key: str = "target_mps",
+) -> list[dict[str, Any]]:
+    """One row per bin that holds samples: (N, 3) answers and targets, binned by `by` (N,)
+    (default: |target|, in `BINS_MPS`); `key` names the bin's bounds in each row."""
     speed = np.linalg.norm(target, axis=1)
+    by = speed if by is None else by
     rows = []
-    for low, high in itertools.pairwise(BINS_MPS):
-        inside = (speed >= low) & (speed < high)
+    for low, high in itertools.pairwise(bins):
+        inside = (by >= low) & (by < high)
         if not inside.any():
             continue
         error = pred[inside] - target[inside]
         direction = target[inside] / np.maximum(speed[inside, None], 1e-9)
         rows.append(
             {
-                "target_mps": [low, high],
+                key: [low, high],
                 "samples": int(inside.sum()),
                 "rmse_mps": float(np.sqrt((error**2).sum(axis=1).mean())),
                 "target_mean_mps": float(speed[inside].mean()),
