@@ -107,6 +107,13 @@ def add_dataset_commands(sub: Any) -> Any:
     c.add_argument("--min", dest="min_m", type=float, default=0.4, help="metres (default 0.4)")
     c.add_argument("--max", dest="max_m", type=float, default=1.1, help="metres (default 1.1)")
     c.add_argument("--seed", type=int, default=0)
+    c.add_argument(
+        "--bearing",
+        default="kept",
+        choices=("kept", "corner"),
+        help="kept (default): the neighbour comes closer along its recorded line; corner: it is "
+        "put towards a corner of the near drone's cube map, where it is split across three faces",
+    )
     c.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     c.add_argument("--no-progress", action="store_true")
     c.set_defaults(handler=_close_range)
@@ -200,7 +207,7 @@ def _close_range(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
-    draw = CloseRangeDraw(args.steps_per_run, args.min_m, args.max_m, args.seed)
+    draw = CloseRangeDraw(args.steps_per_run, args.min_m, args.max_m, args.seed, args.bearing)
     require_writable_dir(args.out)
     dataset = close_range(
         args.source,

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from companion.errors import ConfigError
 from companion.flocking import FlockingParams
+from companion.frames import quat_to_rotmat
 from companion.validation import require_int_range, require_range
 from sim_harness.dataset.generate import check_or_write_spec, finalize
 from sim_harness.dataset.rerender import IMAGE_KEYS, SCALAR_KEYS, flock_steps
@@ -59,13 +60,33 @@ FloatArray = NDArray[np.float64]
 
 # How many agents of a step are tried as the near one before the step is given up
 _TRIES_PER_STEP = 4
+# `bearing="corner"`: the largest component of the neighbour's direction in the near drone's body
+# frame stays below this (1 at a face's centre, 1/sqrt(3) = 0.577 at a cube corner)
+CORNER_FACENESS = 0.75
+BEARINGS = ("kept", "corner")
+
+
+def corner_direction(rng: np.random.Generator) -> FloatArray:
+    """A unit vector drawn uniformly over the cube-corner regions of the sphere (largest component
+    below `CORNER_FACENESS`): where a close drone is split across three faces of the cube map."""
+    while True:
+        u = rng.normal(size=3)
+        norm = float(np.linalg.norm(u))
+        if norm > 1e-9 and np.abs(u).max() / norm < CORNER_FACENESS:
+            return np.asarray(u / norm, dtype=np.float64)
 
 
 def move_nearest_closer(
-    pos: FloatArray, rng: np.random.Generator, min_m: float, max_m: float
+    pos: FloatArray,
+    rng: np.random.Generator,
+    min_m: float,
+    max_m: float,
+    q_world_body: FloatArray | None = None,
 ) -> tuple[FloatArray, int, int] | None:
-    """`pos` (N, 3) with one agent's nearest neighbour moved along their line to a distance drawn
-    in [min_m, max_m], and (i, j); None if no try keeps j at least `min_m` from every other."""
+    """`pos` (N, 3) with one agent's nearest neighbour moved to a distance drawn in [min_m, max_m],
+    and (i, j); None if no try keeps j at least `min_m` from every other. The neighbour keeps its
+    bearing, or, given the attitudes `q_world_body` (N, 4), takes one drawn towards a corner of
+    agent i's cube map (`corner_direction`, in i's body frame)."""
     n = len(pos)
     for _ in range(_TRIES_PER_STEP):
         i = int(rng.integers(n))
@@ -76,8 +97,12 @@ def move_nearest_closer(
         d = float(rng.uniform(min_m, max_m))
         if not math.isfinite(dist[j]) or dist[j] < 1e-6:
             continue
+        if q_world_body is None:
+            direction = offsets[j] / dist[j]
+        else:
+            direction = quat_to_rotmat(q_world_body[i]) @ corner_direction(rng)
         moved = pos.copy()
-        moved[j] = pos[i] + offsets[j] * (d / dist[j])
+        moved[j] = pos[i] + direction * d
         others = np.linalg.norm(np.delete(moved, [i, j], axis=0) - moved[j], axis=1)
         if others.size and others.min() < min_m:
             continue
@@ -95,6 +120,7 @@ def close_range_run(
     min_m: float,
     max_m: float,
     seed: int,
+    bearing: str = "kept",
 ) -> bytes:
     """The bytes of run `run_index` of `split`: up to `steps_per_run` distinct steps of the
     source run, each with one close pair made and the whole flock drawn and labelled again."""
@@ -110,7 +136,9 @@ def close_range_run(
     images, new_pos, labels = [], [], []
     with World(n_agents) as world:
         for k in chosen:
-            moved = move_nearest_closer(pos[k], rng, min_m, max_m)
+            moved = move_nearest_closer(
+                pos[k], rng, min_m, max_m, q[k] if bearing == "corner" else None
+            )
             if moved is None:
                 continue
             kept.append(int(k))
@@ -156,6 +184,7 @@ class CloseRangeDraw:
     min_m: float = 0.4
     max_m: float = 1.1
     seed: int = 0
+    bearing: str = "kept"  # kept: along the recorded line; corner: towards a cube-map corner
 
     def __post_init__(self) -> None:
         require_int_range("close-range.steps_per_run", self.steps_per_run, 1, 100_000)
@@ -167,6 +196,11 @@ class CloseRangeDraw:
                 f"got {self.max_m} m"
             )
         require_int_range("close-range.seed", self.seed, 0)
+        if self.bearing not in BEARINGS:
+            raise ConfigError(
+                f"close-range.bearing: unknown bearing {self.bearing!r}; choose one of "
+                f"{', '.join(BEARINGS)}"
+            )
 
 
 def close_range(
@@ -199,7 +233,15 @@ def close_range(
     runs = {split: [r["run_index"] for r in manifest["splits"][split]["runs"]] for split in SPLITS}
     todo = [(split, k) for split in SPLITS for k in runs[split] if k not in stored_runs(out, split)]
     total = sum(len(v) for v in runs.values())
-    args = (renderer_name, spec.flocking, draw.steps_per_run, draw.min_m, draw.max_m, draw.seed)
+    args = (
+        renderer_name,
+        spec.flocking,
+        draw.steps_per_run,
+        draw.min_m,
+        draw.max_m,
+        draw.seed,
+        draw.bearing,
+    )
     with (
         open_pool(workers or os.cpu_count() or 1, None) as pool,
         progress_bar(

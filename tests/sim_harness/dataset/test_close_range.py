@@ -5,7 +5,13 @@ import pytest
 
 from companion.errors import ConfigError
 from companion.flocking import FlockingParams
-from sim_harness.dataset.close_range import CloseRangeDraw, close_range, move_nearest_closer
+from companion.frames import quat_to_rotmat
+from sim_harness.dataset.close_range import (
+    CORNER_FACENESS,
+    CloseRangeDraw,
+    close_range,
+    move_nearest_closer,
+)
 from sim_harness.dataset.rerender import rerender
 from sim_harness.dataset.runs import teacher_targets
 from sim_harness.dataset.store import open_dataset, run_path, stored_runs
@@ -43,6 +49,7 @@ def test_each_step_gets_one_pair_in_range_the_flock_redrawn_and_labelled_exactly
         "min_m": 0.5,
         "max_m": 0.8,
         "seed": 1,
+        "bearing": "kept",
     }
     assert out.manifest["close_range_from"]["id"] == source.id
     assert set(out.manifest["counts"]) == {"train", "val", "test"}
@@ -111,6 +118,29 @@ def test_a_third_drone_never_ends_closer_than_the_range(tmp_path) -> None:
         np.fill_diagonal(d, np.inf)
         assert 0.4 - 1e-9 <= d[i, j] <= 1.1 + 1e-9
         assert np.delete(d[j], [i, j]).min() >= 0.4
+
+
+def test_a_corner_bearing_puts_the_neighbour_where_three_faces_meet() -> None:
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(-3, 3, size=(9, 3))
+    # agent attitudes: random yaws (a body frame turned about z)
+    yaw = rng.uniform(-np.pi, np.pi, size=9)
+    q = np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], axis=1)
+    found = 0
+    for _ in range(40):
+        result = move_nearest_closer(pos, rng, 0.4, 1.1, q)
+        if result is None:
+            continue
+        moved, i, j = result
+        offset = moved[j] - moved[i]
+        body = quat_to_rotmat(q[i]).T @ offset
+        assert 0.4 - 1e-9 <= np.linalg.norm(body) <= 1.1 + 1e-9
+        faceness = np.abs(body).max() / np.linalg.norm(body)
+        assert faceness < CORNER_FACENESS  # off every face's centre: towards a corner
+        found += 1
+    assert found >= 10
+    with pytest.raises(ConfigError, match="close-range.bearing"):
+        CloseRangeDraw(bearing="random")
 
 
 def test_bad_ranges_and_sources_are_refused_naming_the_field(smoke_dataset, tmp_path) -> None:
