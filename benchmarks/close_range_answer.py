@@ -10,9 +10,13 @@ on a held-out split of a close-range dataset (`swarm-sim dataset close-range`: r
 with one pair brought within 0.4-1.1 m, every label the teacher's): for a seeded draw of
 `--samples`, binned by the sample's nearest neighbour, the count, the RMSE of the 3-vector, the
 mean |target| and the mean of each policy's answer projected on the target's direction ("along";
-equal to the mean |target| for a policy that answers as strongly as the teacher). Prints a table
-per policy and writes JSON (default benchmarks/results/close_range_answer.json). One torch
-thread; about a minute per d4-symmetrized policy for 4,000 samples.
+equal to the mean |target| for a policy that answers as strongly as the teacher). A second table
+takes the samples whose neighbour is within `--within` (0.9 m) and bins them by where that
+neighbour sits in the drone's cube map: "faceness", the largest component of its unit direction
+in the body frame (1 at a face's centre, 0.577 at a cube corner, where a close drone is split over
+three faces, two of them far apart in the 64x384 strip). Prints the tables per policy and writes
+JSON (default benchmarks/results/close_range_answer.json). One torch thread; about a minute per
+d4-symmetrized policy for 4,000 samples.
 """
 
 from __future__ import annotations
@@ -25,10 +29,31 @@ import numpy as np
 from cnn_latency import RESULTS, machine, write_report
 from command_shrinkage import BATCH, shrinkage_table
 
+from companion.frames import quat_to_rotmat
 from sim_harness.dataset.store import open_dataset
 from sim_harness.experiments.vision_controller import load_policy
 
 BINS_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.6, float("inf"))
+FACENESS_BINS = (0.5, 0.7, 0.8, 0.9, 1.01)
+
+
+def nearest_faceness(meta: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
+    """For each sample of `rows`, the largest component of its nearest neighbour's unit direction
+    in its body frame; the split's samples must be every agent at every step (as stored)."""
+    agent = np.asarray(meta["agent"], dtype=np.intp)
+    pos = np.asarray(meta["pos_world_enu"], dtype=np.float64)
+    q = np.asarray(meta["q_world_body"], dtype=np.float64)
+    start = rows - agent[rows]  # the row of agent 0 at the same step
+    out = np.empty(len(rows))
+    for k, (row, first) in enumerate(zip(rows, start, strict=True)):
+        step = np.arange(first, len(agent))
+        step = step[: np.argmax(np.append(agent[step[1:]] == 0, True)) + 1]
+        offsets = pos[step] - pos[row]
+        dist = np.linalg.norm(offsets, axis=1)
+        dist[row - first] = np.inf
+        body = quat_to_rotmat(q[row]).T @ offsets[int(np.argmin(dist))]
+        out[k] = np.abs(body).max() / np.linalg.norm(body)
+    return out
 
 
 def main() -> None:
@@ -38,6 +63,7 @@ def main() -> None:
     parser.add_argument("--split", default="test", choices=("train", "val", "test"))
     parser.add_argument("--samples", type=int, default=4000)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--within", type=float, default=0.9, help="m, the faceness table's samples")
     parser.add_argument("--out", type=Path, default=RESULTS / "close_range_answer.json")
     args = parser.parse_args()
     split = open_dataset(args.dataset).split(args.split)
@@ -46,8 +72,10 @@ def main() -> None:
     images = np.asarray(split.images[rows])
     target = np.asarray(split.targets[rows], dtype=np.float64)
     nearest = np.asarray(split.meta["nearest_m"][rows], dtype=np.float64)
+    close = np.flatnonzero(nearest < args.within)
+    faceness = nearest_faceness(split.meta, rows[close])
     start = time.perf_counter()
-    tables = {}
+    tables, corner_tables = {}, {}
     for model in args.model:
         with load_policy(model, threads=1) as policy:
             pred = np.concatenate(
@@ -64,6 +92,16 @@ def main() -> None:
                 f"{low:4.2f}-{high:<6.2f} {row['samples']:8d} {row['rmse_mps']:6.3f}"
                 f" {row['target_mean_mps']:15.2f} {row['along_mean_mps']:12.2f} {ratio:18.2f}"
             )
+        corner = shrinkage_table(pred[close], target[close], faceness, FACENESS_BINS, "faceness")
+        corner_tables[str(model)] = corner
+        print(f"neighbour within {args.within} m, by faceness (1 face centre, 0.58 cube corner)")
+        for row in corner:
+            low, high = row["faceness"]
+            ratio = row["along_mean_mps"] / max(row["target_mean_mps"], 1e-9)
+            print(
+                f"{low:4.2f}-{high:<6.2f} {row['samples']:8d} {row['rmse_mps']:6.3f}"
+                f" {row['target_mean_mps']:15.2f} {row['along_mean_mps']:12.2f} {ratio:18.2f}"
+            )
     report = {
         "benchmark": "close_range_answer",
         "dataset": str(args.dataset),
@@ -71,6 +109,8 @@ def main() -> None:
         "samples": n,
         "seed": args.seed,
         "tables": tables,
+        "within_m": args.within,
+        "by_faceness": corner_tables,
         "wall_s": time.perf_counter() - start,
         "machine": machine(),
     }
