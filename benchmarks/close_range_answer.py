@@ -27,11 +27,10 @@ from pathlib import Path
 
 import numpy as np
 from cnn_latency import RESULTS, machine, write_report
-from command_shrinkage import BATCH, shrinkage_table
+from command_shrinkage import policy_answers, print_table, shrinkage_table
 
 from companion.frames import quat_to_rotmat
 from sim_harness.dataset.store import open_dataset
-from sim_harness.experiments.vision_controller import load_policy
 
 BINS_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.6, float("inf"))
 FACENESS_BINS = (0.5, 0.7, 0.8, 0.9, 1.01)
@@ -77,31 +76,14 @@ def main() -> None:
     start = time.perf_counter()
     tables, corner_tables = {}, {}
     for model in args.model:
-        with load_policy(model, threads=1) as policy:
-            pred = np.concatenate(
-                [policy.infer_batch(images[i : i + BATCH]) for i in range(0, n, BATCH)]
-            ).astype(np.float64)
+        pred = policy_answers(model, images)
         table = shrinkage_table(pred, target, nearest, BINS_M, "nearest_m")
-        tables[str(model)] = table
-        print(f"{model} on {args.dataset} {args.split}, {n} samples")
-        print("nearest m    samples   RMSE   mean |target|   mean along   along / |target|")
-        for row in table:
-            low, high = row["nearest_m"]
-            ratio = row["along_mean_mps"] / max(row["target_mean_mps"], 1e-9)
-            print(
-                f"{low:4.2f}-{high:<6.2f} {row['samples']:8d} {row['rmse_mps']:6.3f}"
-                f" {row['target_mean_mps']:15.2f} {row['along_mean_mps']:12.2f} {ratio:18.2f}"
-            )
         corner = shrinkage_table(pred[close], target[close], faceness, FACENESS_BINS, "faceness")
-        corner_tables[str(model)] = corner
+        tables[str(model)], corner_tables[str(model)] = table, corner
+        print(f"{model} on {args.dataset} {args.split}, {n} samples")
+        print_table(table, "nearest_m", "nearest m")
         print(f"neighbour within {args.within} m, by faceness (1 face centre, 0.58 cube corner)")
-        for row in corner:
-            low, high = row["faceness"]
-            ratio = row["along_mean_mps"] / max(row["target_mean_mps"], 1e-9)
-            print(
-                f"{low:4.2f}-{high:<6.2f} {row['samples']:8d} {row['rmse_mps']:6.3f}"
-                f" {row['target_mean_mps']:15.2f} {row['along_mean_mps']:12.2f} {ratio:18.2f}"
-            )
+        print_table(corner, "faceness", "faceness")
     report = {
         "benchmark": "close_range_answer",
         "dataset": str(args.dataset),

@@ -64,6 +64,27 @@ def shrinkage_table(
     return rows
 
 
+def policy_answers(model: Path, images: np.ndarray) -> np.ndarray:
+    """The policy's (N, 3) answers to (N, 64, 384) uint8 images, in batches, one torch thread."""
+    with load_policy(model, threads=1) as policy:
+        return np.concatenate(
+            [policy.infer_batch(images[i : i + BATCH]) for i in range(0, len(images), BATCH)]
+        ).astype(np.float64)
+
+
+def print_table(table: list[dict[str, Any]], key: str, title: str) -> None:
+    """Print the rows of `shrinkage_table` (binned by `key`, titled `title`), with the answer's
+    share of the teacher's |command|."""
+    print(f"{title:<13}samples   RMSE   mean |target|   mean along   along / |target|")
+    for row in table:
+        low, high = row[key]
+        ratio = row["along_mean_mps"] / max(row["target_mean_mps"], 1e-9)
+        print(
+            f"{low:4.2f}-{high:<6.2f} {row['samples']:9d} {row['rmse_mps']:6.3f}"
+            f" {row['target_mean_mps']:15.2f} {row['along_mean_mps']:12.2f} {ratio:18.2f}"
+        )
+
+
 def least_squares_gain(pred: np.ndarray, target: np.ndarray) -> dict[str, Any]:
     """The scalar and per-axis g minimizing |g pred - target|^2 over (N, 3) answers, and the MSE
     (mean over samples and axes) at g = 1 and at the scalar g."""
@@ -92,19 +113,10 @@ def main() -> None:
     images = np.asarray(split.images[rows])
     target = np.asarray(split.targets[rows], dtype=np.float64)
     start = time.perf_counter()
-    with load_policy(args.model, threads=1) as policy:
-        pred = np.concatenate(
-            [policy.infer_batch(images[i : i + BATCH]) for i in range(0, n, BATCH)]
-        ).astype(np.float64)
+    pred = policy_answers(args.model, images)
     table = shrinkage_table(pred, target)
     print(f"{args.model} on {args.dataset} {args.split}, {n} samples")
-    print("|target| m/s   samples   RMSE   mean |target|   mean along")
-    for row in table:
-        low, high = row["target_mps"]
-        print(
-            f"{low:4.2f}-{high:<6.2f} {row['samples']:9d} {row['rmse_mps']:6.3f}"
-            f" {row['target_mean_mps']:15.2f} {row['along_mean_mps']:12.2f}"
-        )
+    print_table(table, "target_mps", "|target| m/s")
     fit = least_squares_gain(pred, target)
     print(
         f"least-squares output gain {fit['gain']:.3f} (per axis "

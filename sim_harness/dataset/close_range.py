@@ -25,7 +25,6 @@ with the same command.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -38,7 +37,7 @@ from companion.flocking import FlockingParams
 from companion.frames import quat_to_rotmat
 from companion.validation import require_int_range, require_range
 from sim_harness.dataset.generate import check_or_write_spec, finalize
-from sim_harness.dataset.rerender import IMAGE_KEYS, SCALAR_KEYS, flock_steps
+from sim_harness.dataset.rerender import IMAGE_KEYS, SCALAR_KEYS, each_missing_run, flock_steps
 from sim_harness.dataset.runs import RunData, teacher_targets
 from sim_harness.dataset.spec import SPLITS, DatasetSpec
 from sim_harness.dataset.store import (
@@ -47,12 +46,9 @@ from sim_harness.dataset.store import (
     open_dataset,
     remove_partial_files,
     run_path,
-    stored_runs,
     write_run_bytes,
 )
 from sim_harness.errors import DatasetError
-from sim_harness.sim.executor import open_pool
-from sim_harness.sim.progress import progress_bar
 from sim_harness.sim.renderers import make_renderer
 from sim_harness.sim.world import World
 
@@ -172,8 +168,28 @@ def close_range_run(
     return encode_run(run)
 
 
-def _draw_and_store(out: Path, source: Path, split: str, run_index: int, *args: Any) -> None:
-    write_run_bytes(out, split, run_index, close_range_run(source, split, run_index, *args))
+def _draw_and_store(
+    out: Path,
+    source: Path,
+    draw: CloseRangeDraw,
+    renderer_name: str,
+    flocking: FlockingParams,
+    split: str,
+    run_index: int,
+) -> None:
+    run = close_range_run(
+        source,
+        split,
+        run_index,
+        renderer_name,
+        flocking,
+        draw.steps_per_run,
+        draw.min_m,
+        draw.max_m,
+        draw.seed,
+        draw.bearing,
+    )
+    write_run_bytes(out, split, run_index, run)
 
 
 @dataclass(frozen=True)
@@ -231,32 +247,8 @@ def close_range(
     check_or_write_spec(out, spec)
     remove_partial_files(out)
     runs = {split: [r["run_index"] for r in manifest["splits"][split]["runs"]] for split in SPLITS}
-    todo = [(split, k) for split in SPLITS for k in runs[split] if k not in stored_runs(out, split)]
-    total = sum(len(v) for v in runs.values())
-    args = (
-        renderer_name,
-        spec.flocking,
-        draw.steps_per_run,
-        draw.min_m,
-        draw.max_m,
-        draw.seed,
-        draw.bearing,
-    )
-    with (
-        open_pool(workers or os.cpu_count() or 1, None) as pool,
-        progress_bar(
-            total=total, initial=total - len(todo), desc="close range", enabled=progress, unit="run"
-        ) as bar,
-    ):
-        pending = [
-            pool.submit(_draw_and_store, out, source, split, k, *args, label=f"{split} run {k}")
-            for split, k in todo
-        ]
-        while pending:
-            for task in pool.wait(pending):
-                task.result()  # raises what the draw raised
-                pending.remove(task)
-                bar.update(1)
+    args = (out, source, draw, renderer_name, spec.flocking)
+    each_missing_run(out, runs, _draw_and_store, args, workers, progress, "close range")
     extra: dict[str, Any] = {
         "close_range_from": {"id": manifest["id"], "root": str(source)},
         "close_range": asdict(draw),

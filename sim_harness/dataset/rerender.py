@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -92,12 +93,38 @@ def redraw_run(
 
 
 def _redraw_and_store(
-    source: Path, out: Path, split: str, run_index: int, renderer_name: str, vary: int | None
-) -> tuple[str, int]:
+    source: Path, out: Path, renderer_name: str, vary: int | None, split: str, run_index: int
+) -> None:
     write_run_bytes(
         out, split, run_index, redraw_run(source, split, run_index, renderer_name, vary)
     )
-    return split, run_index
+
+
+def each_missing_run(
+    out: Path,
+    runs: dict[str, list[int]],
+    work: Callable[..., None],
+    args: tuple[Any, ...],
+    workers: int | None,
+    progress: bool,
+    desc: str,
+) -> None:
+    """Call `work(*args, split, run_index)` in a pool for every run of `runs` (per split) that
+    `out` does not hold yet, with a progress bar; the first failure is raised."""
+    todo = [(split, k) for split in SPLITS for k in runs[split] if k not in stored_runs(out, split)]
+    total = sum(len(v) for v in runs.values())
+    with (
+        open_pool(workers or os.cpu_count() or 1, None) as pool,
+        progress_bar(
+            total=total, initial=total - len(todo), desc=desc, enabled=progress, unit="run"
+        ) as bar,
+    ):
+        pending = [pool.submit(work, *args, s, k, label=f"{s} run {k}") for s, k in todo]
+        while pending:
+            for task in pool.wait(pending):
+                task.result()  # raises what the work raised
+                pending.remove(task)
+                bar.update(1)
 
 
 def rerender(
@@ -123,21 +150,8 @@ def rerender(
     check_or_write_spec(out, spec)
     remove_partial_files(out)
     runs = {split: [r["run_index"] for r in manifest["splits"][split]["runs"]] for split in SPLITS}
-    todo = [(split, k) for split in SPLITS for k in runs[split] if k not in stored_runs(out, split)]
-    total = sum(len(v) for v in runs.values())
-    with (
-        open_pool(workers or os.cpu_count() or 1, None) as pool,
-        progress_bar(
-            total=total, initial=total - len(todo), desc="redraw", enabled=progress, unit="run"
-        ) as bar,
-    ):
-        args = [(source, out, split, k, renderer_name, vary_scene) for split, k in todo]
-        pending = [pool.submit(_redraw_and_store, *a, label=f"{a[2]} run {a[3]}") for a in args]
-        while pending:
-            for task in pool.wait(pending):
-                task.result()  # raises what the redraw raised
-                pending.remove(task)
-                bar.update(1)
+    args = (source, out, renderer_name, vary_scene)
+    each_missing_run(out, runs, _redraw_and_store, args, workers, progress, "redraw")
     extra: dict[str, Any] = {
         "rerendered_from": {
             "id": manifest["id"],
