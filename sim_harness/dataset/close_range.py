@@ -8,13 +8,15 @@ where the separation term is steepest (k_sep / d). A network that has barely see
 answers it as if it were at 0.9 m.
 
 This module makes such states from recorded ones. For some steps of each run of a source dataset
-(seeded, distinct steps), it picks an agent i, takes its nearest neighbour j, and moves j along
-the line from i to a distance drawn uniformly in [`min_m`, `max_m`]: the same bearing, the same
-attitude, the rest of the flock where it was. The step is kept only if j stays at least `min_m`
-from every other drone. Then the whole flock is drawn again and every drone's label is the
-teacher's Reynolds command of the new positions (`runs.teacher_targets`), so every label is exact:
-nothing is interpolated, only the state is new. Per step, two samples (i and j) are close ones and
-the rest of the flock comes along, so a batch still holds whole flocks (`learning.flock_loss`).
+(seeded, distinct steps), it picks an agent i, takes its nearest neighbour j, and moves j to a
+distance drawn uniformly in [`min_m`, `max_m`] from i: along their line (`bearing="kept"`), or
+towards a corner of i's cube map (`"corner"`), where a close drone is split over three faces and
+the shipped network answers it weakest; j keeps its attitude, the rest of the flock stays. The
+step is kept only if j stays at least `min_m` from every other drone. Then the whole flock is
+drawn again and every drone's label is the teacher's Reynolds command of the new positions
+(`runs.teacher_targets`), so every label is exact: nothing is interpolated, only the state is
+new. Per step, two samples (i and j) are close ones and the rest of the flock comes along, so a
+batch still holds whole flocks (`learning.flock_loss`).
 
 The output is a normal dataset folder with the source's spec and splits (a step of a validation
 run stays in validation). Its manifest records the source (`close_range_from`) and the draw
@@ -60,6 +62,33 @@ _TRIES_PER_STEP = 4
 # frame stays below this (1 at a face's centre, 1/sqrt(3) = 0.577 at a cube corner)
 CORNER_FACENESS = 0.75
 BEARINGS = ("kept", "corner")
+
+
+@dataclass(frozen=True)
+class CloseRangeDraw:
+    """What is drawn: `steps_per_run` steps a run, one pair brought to [min_m, max_m] m in each."""
+
+    steps_per_run: int = 30
+    min_m: float = 0.4
+    max_m: float = 1.1
+    seed: int = 0
+    bearing: str = "kept"  # kept: along the recorded line; corner: towards a cube-map corner
+
+    def __post_init__(self) -> None:
+        require_int_range("close-range.steps_per_run", self.steps_per_run, 1, 100_000)
+        require_range("close-range.min_m", self.min_m, 0.2, 5.0)
+        require_range("close-range.max_m", self.max_m, 0.2, 5.0)
+        if self.max_m <= self.min_m:
+            raise ConfigError(
+                f"close-range.max_m: must be above close-range.min_m ({self.min_m} m), "
+                f"got {self.max_m} m"
+            )
+        require_int_range("close-range.seed", self.seed, 0)
+        if self.bearing not in BEARINGS:
+            raise ConfigError(
+                f"close-range.bearing: unknown bearing {self.bearing!r}; choose one of "
+                f"{', '.join(BEARINGS)}"
+            )
 
 
 def corner_direction(rng: np.random.Generator) -> FloatArray:
@@ -112,28 +141,25 @@ def close_range_run(
     run_index: int,
     renderer_name: str,
     flocking: FlockingParams,
-    steps_per_run: int,
-    min_m: float,
-    max_m: float,
-    seed: int,
-    bearing: str = "kept",
+    draw: CloseRangeDraw,
 ) -> bytes:
-    """The bytes of run `run_index` of `split`: up to `steps_per_run` distinct steps of the
+    """The bytes of run `run_index` of `split`: up to `draw.steps_per_run` distinct steps of the
     source run, each with one close pair made and the whole flock drawn and labelled again."""
+    min_m, max_m = draw.min_m, draw.max_m
     with np.load(run_path(source, split, run_index)) as z:
         arrays = {k: z[k] for k in z.files}
     n_steps, n_agents = flock_steps(arrays["agent"], f"run {split}/{run_index} of {source}")
     pos = arrays["pos_world_enu"].astype(np.float64).reshape(n_steps, n_agents, 3)
     q = arrays["q_world_body"].astype(np.float64).reshape(n_steps, n_agents, 4)
-    rng = np.random.default_rng([seed, SPLITS.index(split), run_index])
-    chosen = np.sort(rng.choice(n_steps, size=min(steps_per_run, n_steps), replace=False))
+    rng = np.random.default_rng([draw.seed, SPLITS.index(split), run_index])
+    chosen = np.sort(rng.choice(n_steps, size=min(draw.steps_per_run, n_steps), replace=False))
     renderer = make_renderer(renderer_name)
     kept: list[int] = []
     images, new_pos, labels = [], [], []
     with World(n_agents) as world:
         for k in chosen:
             moved = move_nearest_closer(
-                pos[k], rng, min_m, max_m, q[k] if bearing == "corner" else None
+                pos[k], rng, min_m, max_m, q[k] if draw.bearing == "corner" else None
             )
             if moved is None:
                 continue
@@ -177,46 +203,8 @@ def _draw_and_store(
     split: str,
     run_index: int,
 ) -> None:
-    run = close_range_run(
-        source,
-        split,
-        run_index,
-        renderer_name,
-        flocking,
-        draw.steps_per_run,
-        draw.min_m,
-        draw.max_m,
-        draw.seed,
-        draw.bearing,
-    )
+    run = close_range_run(source, split, run_index, renderer_name, flocking, draw)
     write_run_bytes(out, split, run_index, run)
-
-
-@dataclass(frozen=True)
-class CloseRangeDraw:
-    """What is drawn: `steps_per_run` steps a run, one pair brought to [min_m, max_m] m in each."""
-
-    steps_per_run: int = 30
-    min_m: float = 0.4
-    max_m: float = 1.1
-    seed: int = 0
-    bearing: str = "kept"  # kept: along the recorded line; corner: towards a cube-map corner
-
-    def __post_init__(self) -> None:
-        require_int_range("close-range.steps_per_run", self.steps_per_run, 1, 100_000)
-        require_range("close-range.min_m", self.min_m, 0.2, 5.0)
-        require_range("close-range.max_m", self.max_m, 0.2, 5.0)
-        if self.max_m <= self.min_m:
-            raise ConfigError(
-                f"close-range.max_m: must be above close-range.min_m ({self.min_m} m), "
-                f"got {self.max_m} m"
-            )
-        require_int_range("close-range.seed", self.seed, 0)
-        if self.bearing not in BEARINGS:
-            raise ConfigError(
-                f"close-range.bearing: unknown bearing {self.bearing!r}; choose one of "
-                f"{', '.join(BEARINGS)}"
-            )
 
 
 def close_range(
