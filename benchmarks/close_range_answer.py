@@ -42,12 +42,12 @@ def nearest_faceness(meta: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarra
     agent = np.asarray(meta["agent"], dtype=np.intp)
     pos = np.asarray(meta["pos_world_enu"], dtype=np.float64)
     q = np.asarray(meta["q_world_body"], dtype=np.float64)
-    start = rows - agent[rows]  # the row of agent 0 at the same step
+    starts = np.append(np.flatnonzero(agent == 0), len(agent))  # each step's first row, and the end
     out = np.empty(len(rows))
-    for k, (row, first) in enumerate(zip(rows, start, strict=True)):
-        step = np.arange(first, len(agent))
-        step = step[: np.argmax(np.append(agent[step[1:]] == 0, True)) + 1]
-        offsets = pos[step] - pos[row]
+    for k, row in enumerate(rows):
+        s = int(np.searchsorted(starts, row, side="right")) - 1
+        first, end = int(starts[s]), int(starts[s + 1])
+        offsets = pos[first:end] - pos[row]
         dist = np.linalg.norm(offsets, axis=1)
         dist[row - first] = np.inf
         body = quat_to_rotmat(q[row]).T @ offsets[int(np.argmin(dist))]
