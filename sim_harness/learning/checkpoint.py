@@ -4,7 +4,8 @@ A checkpoint (`*.ckpt`, written with `torch.save`, read with `weights_only=True`
 
 - `format`: `CHECKPOINT_FORMAT`
 - `epoch`: completed epochs (1-based count; the next epoch to run is `epoch + 1`)
-- `model`: the model's state dict; `model_config`: `{"pixel_mean", "pixel_std", "dropout"}`
+- `model`: the model's state dict; `model_config`: `{"pixel_mean", "pixel_std", "dropout", "arch"}`
+  (no "arch": "dronet", as every checkpoint before the option)
 - `optimizer`, `scheduler`: their state dicts; the optimizer's also names its parameters
   (`param_names`, one list per group), so a resume maps state by name, not by position
 - `best_val_loss`, `best_epoch`, `epochs_since_best`: early-stopping state
@@ -27,7 +28,7 @@ from typing import Any
 import torch
 
 from sim_harness.errors import SimError
-from sim_harness.learning.model import DroNet, build_model
+from sim_harness.learning.model import DroNet, build_from_config
 
 CHECKPOINT_FORMAT = "vision-swarm-checkpoint/1"
 LAST_NAME = "last.ckpt"
@@ -63,8 +64,7 @@ def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dic
 
 def model_from_checkpoint(state: dict[str, Any], device: str | torch.device = "cpu") -> DroNet:
     """Rebuild the checkpoint's model in eval mode on `device`."""
-    cfg = state["model_config"]
-    model = build_model(cfg["pixel_mean"], cfg["pixel_std"], cfg["dropout"], device=device)
+    model = build_from_config(state["model_config"], device)
     model.load_state_dict(state["model"])
     return model.eval()
 

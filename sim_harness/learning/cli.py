@@ -56,6 +56,12 @@ def add_learning_commands(sub: Any) -> None:
         help="dropout probability before the linear head (default 0.5, the paper's; lower "
         "shrinks the rare large commands less: models/README.md)",
     )
+    t.add_argument(
+        "--arch",
+        default="dronet",
+        help="the network: dronet (the strip as one image, default) or cube (each cube-map face "
+        "padded with its neighbours; same weights, so --init-from either works)",
+    )
     t.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     t.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     t.add_argument("--limit-train", type=int, default=None, help="train on N samples (quick runs)")
@@ -202,6 +208,7 @@ def _train(args: argparse.Namespace) -> int:
         resume=args.resume,
         extra_train=tuple(args.extra_train),
         init_from=args.init_from,
+        arch=args.arch,
         augment=args.augment,
         weight_speed_mps=args.weight_speed,
         weight_near_m=args.weight_near,

@@ -54,7 +54,7 @@ from sim_harness.learning.evaluate import PolicyModule
 from sim_harness.learning.inference_graph import InferenceDroNet
 from sim_harness.learning.model import (
     DroNet,
-    build_model,
+    build_from_config,
     count_parameters,
     example_input,
     to_channels_last,
@@ -84,13 +84,16 @@ def to_torchscript(
 
     `graph="inference"` (the export) traces `InferenceDroNet`, the same function with the input
     standardization folded into conv1; `graph="eager"` traces `DroNet` itself (for the tests).
+    A `cube` network is traced as it is (its first conv pads with neighbouring faces, not with a
+    constant, so there is no standardization to fold).
     `symmetry` (a `learning.symmetry.GROUPS` name) wraps it in `SymmetricPolicy`: the network
     averaged over the rig's symmetric views of each image, in one batch.
     """
     if graph not in ("inference", "eager"):
         raise ValueError(f"graph must be 'inference' or 'eager', not {graph!r}")
     cpu = to_channels_last(copy.deepcopy(model)).eval()
-    module: torch.nn.Module = InferenceDroNet(cpu).eval() if graph == "inference" else cpu
+    folded = graph == "inference" and cpu.arch == "dronet"
+    module: torch.nn.Module = InferenceDroNet(cpu).eval() if folded else cpu
     if symmetry != "none":
         module = SymmetricPolicy(module, symmetry).eval()
     with torch.no_grad(), torchscript_calls():  # TorchScript is the drone's format, for now
@@ -128,12 +131,13 @@ def weights_path_for(policy_path: Path) -> Path:
     return policy_path.with_name(policy_path.stem + WEIGHTS_SUFFIX)
 
 
-def model_config(model: DroNet) -> dict[str, float]:
-    """What `build_model` needs to rebuild `model`."""
+def model_config(model: DroNet) -> dict[str, float | str]:
+    """What `build_from_config` needs to rebuild `model`."""
     return {
         "pixel_mean": float(model.standardize.pixel_mean),
         "pixel_std": float(model.standardize.pixel_std),
         "dropout": float(model.dropout.p),
+        "arch": model.arch,
     }
 
 
@@ -365,8 +369,7 @@ def load_eager_model(
     if hashlib.sha256(data).hexdigest() != record["sha256"]:
         raise ModelError(f"{weights} does not match the hash recorded in {path.name}: refused")
     state = torch.load(weights, map_location=device, weights_only=True)
-    cfg = state["model_config"]
-    model = build_model(cfg["pixel_mean"], cfg["pixel_std"], cfg["dropout"], device=device)
+    model = build_from_config(state["model_config"], device)
     model.load_state_dict(state["model"])
     return model.eval(), loaded.metadata
 

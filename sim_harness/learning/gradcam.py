@@ -92,7 +92,8 @@ def grad_cam(model: DroNet, images_u8: ArrayLike, target: str = "speed") -> Grad
             (grads,) = torch.autograd.grad(_scalar_target(vel, target), captured[0])
     finally:
         hook.remove()
-    activation = captured[0].detach()
+    activation = model.as_strip(captured[0].detach())
+    grads = model.as_strip(grads)
     alpha = grads.mean(dim=(2, 3), keepdim=True)  # (B, C, 1, 1)
     cam = torch.relu((alpha * activation).sum(dim=1, keepdim=True))  # (B, 1, 4, 24)
     up = F.interpolate(

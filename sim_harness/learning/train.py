@@ -313,7 +313,9 @@ def train_on(
     out.mkdir(parents=True, exist_ok=True)
 
     torch.manual_seed(config.seed)
-    model = build_model(manifest["pixel_mean"], manifest["pixel_std"], config.dropout, device)
+    model = build_model(
+        manifest["pixel_mean"], manifest["pixel_std"], config.dropout, device, config.arch
+    )
     optimizer = make_optimizer(model, config)
     scheduler = make_scheduler(optimizer, config)
     plateau = Plateau(config.early_stop_patience_epochs)
@@ -329,6 +331,7 @@ def train_on(
             "pixel_mean": float(manifest["pixel_mean"]),
             "pixel_std": float(manifest["pixel_std"]),
             "dropout": config.dropout,
+            "arch": config.arch,
         },
     }
     if config.resume:

@@ -12,6 +12,7 @@ import torch
 from companion.errors import ConfigError
 from companion.validation import require_int_range, require_positive, require_range
 from sim_harness.learning.lr_schedule import LR_SCHEDULES
+from sim_harness.learning.model import require_arch
 from sim_harness.learning.symmetry_views import require_group
 
 DEVICES = ("auto", "cpu", "cuda")
@@ -48,6 +49,9 @@ class TrainConfig:
     # is loaded once and its samples shown k times per epoch (weighting a targeted round)
     extra_train: tuple[Path, ...] = ()
     init_from: Path | None = None  # start from these weights (checkpoint or policy file)
+    # the network (`learning.model.ARCHS`): "cube" pads each cube-map face with its neighbours;
+    # both have the same weights, so either initializes the other
+    arch: str = "dronet"
     # show each training sample in a random view of this symmetry group of the camera rig, label
     # transformed to match (`sim_harness.learning.symmetry`); "none": the images as recorded
     augment: str = "none"
@@ -97,6 +101,7 @@ class TrainConfig:
         if self.threads is not None:
             require_int_range("threads", self.threads, 1, 1024)
         require_group(self.augment, "augment")
+        require_arch(self.arch)
         if self.weight_speed_mps is not None:
             require_positive("weight_speed_mps", self.weight_speed_mps)
         if self.weight_near_m is not None:
