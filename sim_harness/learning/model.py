@@ -39,7 +39,7 @@ Architectures (`ARCHS`, the training option `--arch`):
   true neighbours on the sphere (`CubePad`): a drone towards a cube corner, split over three
   faces, is seen whole by the convolutions instead of as three unrelated edge fragments. The
   max pool pads too (3x3/2 with padding 1), so every face stays 2^k cells wide: 32, 16, 8, 4,
-  2; the head sees the same 128 x 2 x 12 features. About 1.8x the training time of `dronet` on CPU.
+  2; the head sees the same 128 x 2 x 12 features. About 1.9x the training time of `dronet` on CPU.
 """
 
 from __future__ import annotations

@@ -448,6 +448,9 @@ def _resume(
             f"cannot resume: {path} was trained on dataset {state['dataset']['id']}, "
             f"not {manifest['id']}"
         )
+    recorded = state["model_config"].get("arch", "dronet")
+    if recorded != model.arch:  # the weights would load: the state dicts are alike
+        raise CheckpointError(f"cannot resume: {path} trains arch {recorded}, not {model.arch}")
     model.load_state_dict(state["model"])
     load_optimizer_state(optimizer, model, state["optimizer"])
     scheduler.load_state_dict(state["scheduler"])

@@ -12,7 +12,12 @@ from companion.errors import ConfigError
 from companion.model_file import enable_graph_fusion, load_model
 from companion.policy import Policy, PolicyConfig
 from sim_harness.dataset.store import open_dataset
-from sim_harness.learning.checkpoint import LAST_NAME, load_checkpoint, model_from_checkpoint
+from sim_harness.learning.checkpoint import (
+    LAST_NAME,
+    CheckpointError,
+    load_checkpoint,
+    model_from_checkpoint,
+)
 from sim_harness.learning.export import export_policy, load_eager_model
 from sim_harness.learning.gradcam import grad_cam
 from sim_harness.learning.model import (
@@ -167,6 +172,8 @@ def test_training_a_cube_network_from_dronet_weights(smoke_dataset, tmp_path) ->
     assert np.isfinite(result.history[-1]["val_loss"])
     model = model_from_checkpoint(state)
     assert isinstance(model, CubeDroNet)
+    with pytest.raises(CheckpointError, match="trains arch cube, not dronet"):
+        train(TrainConfig(dataset=smoke_dataset, out_dir=tmp_path / "cube", resume=True, **base))
     plain = load_checkpoint(tmp_path / "plain" / LAST_NAME)
     assert plain["model_config"]["arch"] == "dronet"
     del plain["model_config"]["arch"]  # a checkpoint from before the option
