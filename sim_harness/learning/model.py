@@ -186,7 +186,7 @@ class CubePad(nn.Module):
 
     def __init__(self, size: int, pad: int) -> None:
         super().__init__()
-        self.size, self.pad = size, pad
+        self.pad = pad
         self.register_buffer("index", cube_pad_index(size, pad), persistent=False)
 
     def forward(self, faces: torch.Tensor) -> torch.Tensor:
@@ -222,10 +222,6 @@ class CubeDroNet(DroNet):
 
     arch = "cube"
 
-    def as_strip(self, features: torch.Tensor) -> torch.Tensor:
-        """Per-face features (6B, C, S, S) as the strip (B, C, S, 6S)."""
-        return faces_to_strip(features)
-
     def __init__(self, pixel_mean: float, pixel_std: float, dropout: float = 0.5) -> None:
         super().__init__(pixel_mean, pixel_std, dropout)
         self.pad_conv1 = CubePad(FACE_SIZE_PX, 2)
@@ -239,6 +235,10 @@ class CubeDroNet(DroNet):
             size //= 2  # the strided conv halves the face
         self.conv1.padding = (0, 0)
         self.pad_blocks = nn.ModuleList(pads)
+
+    def as_strip(self, features: torch.Tensor) -> torch.Tensor:
+        """Per-face features (6B, C, S, S) as the strip (B, C, S, 6S)."""
+        return faces_to_strip(features)
 
     def forward(self, images_u8: torch.Tensor) -> torch.Tensor:
         x = self.conv1(self.pad_conv1(strip_to_faces(self.standardize(images_u8))))
