@@ -180,21 +180,74 @@ def cube_pad_index(size: int, pad: int) -> torch.Tensor:
 
 class CubePad(nn.Module):
     """(6B, C, S, S) faces (channels_last) -> (6B, C, S + 2 pad, S + 2 pad), each face padded with
-    its neighbours' cells (`cube_pad_index`): one gather over the six faces of each sample."""
+    its neighbours' cells (`cube_pad_index`).
 
-    index: torch.Tensor
+    Each face is copied into the middle of its padded frame and only the border cells are
+    gathered; when training, `_CubePadGrad` returns the gradient the same way (the middle as is,
+    the border added back onto the cells it came from), instead of autograd's full-size
+    zero-fill and scatter of a whole-frame gather: 2x faster per training step on CPU.
+    """
+
+    source: torch.Tensor
+    target: torch.Tensor
 
     def __init__(self, size: int, pad: int) -> None:
         super().__init__()
         self.pad = pad
-        self.register_buffer("index", cube_pad_index(size, pad), persistent=False)
+        padded = size + 2 * pad
+        border = torch.ones(6, padded, padded, dtype=torch.bool)
+        border[:, pad : pad + size, pad : pad + size] = False
+        target = border.reshape(-1).nonzero().squeeze(1)
+        # border cell k of the padded frames (flat over the six) copies face cell source[k]
+        self.register_buffer("target", target, persistent=False)
+        self.register_buffer("source", cube_pad_index(size, pad)[target], persistent=False)
 
     def forward(self, faces: torch.Tensor) -> torch.Tensor:
-        stacked, channels, size, _ = faces.shape
-        flat = faces.permute(0, 2, 3, 1).reshape(stacked // 6, 6 * size * size, channels)
-        padded = size + 2 * self.pad
-        out = torch.index_select(flat, 1, self.index)
-        return out.reshape(stacked, padded, padded, channels).permute(0, 3, 1, 2)
+        if faces.requires_grad and torch.is_grad_enabled() and not torch.jit.is_tracing():
+            out: torch.Tensor = _CubePadGrad.apply(faces, self.source, self.target, self.pad)
+            return out
+        return _cube_pad(faces, self.source, self.target, self.pad)
+
+
+def _cube_pad(
+    faces: torch.Tensor, source: torch.Tensor, target: torch.Tensor, pad: int
+) -> torch.Tensor:
+    """`CubePad`'s forward: the middle copied, the border gathered (channels_last out)."""
+    stacked, channels, size, _ = faces.shape
+    padded = size + 2 * pad
+    cells = faces.permute(0, 2, 3, 1)  # (6B, S, S, C), a view when channels_last
+    out = faces.new_empty(stacked, padded, padded, channels)
+    out[:, pad : pad + size, pad : pad + size] = cells
+    flat = cells.reshape(stacked // 6, 6 * size * size, channels)
+    border = torch.index_select(flat, 1, source)
+    out.view(stacked // 6, 6 * padded * padded, channels).index_copy_(1, target, border)
+    return out.permute(0, 3, 1, 2)
+
+
+class _CubePadGrad(torch.autograd.Function):
+    """`_cube_pad` with its gradient computed in place of autograd's (see `CubePad`)."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any, faces: torch.Tensor, source: torch.Tensor, target: torch.Tensor, pad: int
+    ) -> torch.Tensor:
+        ctx.save_for_backward(source, target)
+        ctx.pad = pad
+        return _cube_pad(faces, source, target, pad)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:  # type: ignore[override]
+        source, target = ctx.saved_tensors
+        pad = ctx.pad
+        stacked, channels, padded, _ = grad.shape
+        size = padded - 2 * pad
+        cells = grad.permute(0, 2, 3, 1)  # (6B, P, P, C)
+        out = cells[:, pad : pad + size, pad : pad + size].contiguous()
+        border = torch.index_select(
+            cells.reshape(stacked // 6, 6 * padded * padded, channels), 1, target
+        )
+        out.view(stacked // 6, 6 * size * size, channels).index_add_(1, source, border)
+        return out.permute(0, 3, 1, 2), None, None, None
 
 
 def strip_to_faces(x: torch.Tensor) -> torch.Tensor:

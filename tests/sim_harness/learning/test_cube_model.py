@@ -22,6 +22,7 @@ from sim_harness.learning.export import export_policy, load_eager_model
 from sim_harness.learning.gradcam import grad_cam
 from sim_harness.learning.model import (
     CubeDroNet,
+    CubePad,
     DroNet,
     build_model,
     cube_pad_index,
@@ -62,6 +63,32 @@ def test_each_padding_cell_comes_from_the_cell_that_looks_the_same_way(size, pad
     ring = np.ones(index.shape[1:], bool)
     ring[pad : pad + size, pad : pad + size] = False
     assert (index[:, ring] // (size * size) != np.arange(6)[:, None]).all()  # from other faces
+
+
+@pytest.mark.parametrize(("size", "pad"), [(64, 2), (16, 1), (2, 1)])
+def test_cube_pad_is_the_gather_of_its_index_values_and_gradients(size, pad) -> None:
+    # CubePad copies the middle and gathers only the border, with its own backward: it must
+    # equal the plain whole-frame gather of `cube_pad_index`, autograd's gradient included,
+    # when training, under no_grad and for a non-channels_last input.
+    torch.manual_seed(size)
+    padded = size + 2 * pad
+    x = torch.randn(12, 3, size, size, dtype=torch.float64)
+    x = x.contiguous(memory_format=torch.channels_last).requires_grad_()
+    flat = x.permute(0, 2, 3, 1).reshape(2, 6 * size * size, 3)
+    gathered = torch.index_select(flat, 1, cube_pad_index(size, pad))
+    expected = gathered.reshape(12, padded, padded, 3).permute(0, 3, 1, 2)
+    out = CubePad(size, pad)(x)
+    assert out.is_contiguous(memory_format=torch.channels_last)
+    weights = torch.randn_like(out)
+    (grad,) = torch.autograd.grad((out * weights).sum(), x)
+    (grad_expected,) = torch.autograd.grad((expected * weights).sum(), x)
+    torch.testing.assert_close(out, expected, rtol=0, atol=0)
+    torch.testing.assert_close(grad, grad_expected)
+    with torch.no_grad():
+        torch.testing.assert_close(CubePad(size, pad)(x), expected, rtol=0, atol=0)
+        torch.testing.assert_close(CubePad(size, pad)(x.contiguous()), expected, rtol=0, atol=0)
+    if size <= 4:
+        assert torch.autograd.gradcheck(CubePad(size, pad), (x.detach().requires_grad_(),))
 
 
 def test_the_front_face_top_edge_sees_the_up_face_and_dronet_does_not() -> None:
