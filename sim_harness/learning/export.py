@@ -177,11 +177,16 @@ def policy_metadata(
             "training": training,
             "architecture": {
                 "name": "DroNet ResNet-8, single 3-output regression head",
+                "arch": model.arch,
                 "parameters": count_parameters(model),
-                "gradcam_layer": "block2.conv_strided (64 x 4 x 24)",
+                "gradcam_layer": "block2.conv_strided (64 x 4 x 24)"
+                if model.arch == "dronet"
+                else "block2.conv_strided, per face (64 x 4 x 4 x 6 faces, as the 4 x 24 strip)",
             },
             "runtime": {
-                "graph": "frozen, channels_last, standardization folded into conv1",
+                "graph": "frozen, channels_last, standardization folded into conv1"
+                if model.arch == "dronet"
+                else "frozen, channels_last, faces padded by their neighbours (traced as is)",
                 "symmetry": {
                     "group": symmetry,
                     "views": len(require_group(symmetry)),

@@ -172,7 +172,11 @@ def test_a_cube_policy_exports_reloads_and_explains(smoke_dataset, tmp_path) -> 
     assert result.max_abs_diff_mps <= 1e-5
     eager, _ = load_eager_model(result.path)
     assert isinstance(eager, CubeDroNet)
-    frozen = load_model(result.path).module
+    loaded = load_model(result.path)
+    frozen = loaded.module
+    # the file says which network it carries, and claims no standardization folded into conv1
+    assert loaded.metadata["architecture"]["arch"] == "cube"
+    assert "folded" not in loaded.metadata["runtime"]["graph"]
     with torch.inference_mode():
         eager_out = SymmetricPolicy(eager, "d4")(images[:9])
         frozen_out = frozen(images[:9])

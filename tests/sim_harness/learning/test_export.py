@@ -162,6 +162,7 @@ def test_metadata_travels_with_the_file(exported) -> None:
     assert metadata["test_metrics"]["metrics"]["overall"]["r2"] == 0.5
     assert metadata["training"]["command"] == "swarm-sim train --dataset smoke"
     assert metadata["architecture"]["parameters"] == count_parameters(model)
+    assert metadata["architecture"]["arch"] == "dronet"
     assert metadata["torch_version"] == torch.__version__
     assert "enable_onednn_fusion" in metadata["runtime"]["onednn_fusion"]
     assert metadata["eager_weights"]["file"] == weights_path_for(result.path).name
