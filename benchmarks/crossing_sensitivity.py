@@ -1,0 +1,205 @@
+"""How close to the teacher a student must answer for the opposing crossing to stay within 0.1 m.
+
+    python benchmarks/crossing_sensitivity.py [--seeds 300-339] [--workers 2] \
+        [--variants near0.8,near0.9,...]
+
+The bar's opposing-goals pair criterion asks the CNN flock's closest pair to be at most 0.1 m
+below the teacher's, seed by seed. That pair is made in the first two seconds, when the two
+groups cross each other after the spawn. This script asks how accurate a policy has to be for
+that, with no camera and no network: "students" that are the teacher's law with one controlled
+error in the part the CNN learns (the Reynolds term, separation + cohesion), flown on training
+seeds (the evaluation seeds stay unseen) against the exact teacher on the same seeds:
+
+- `nearS`: every neighbour within 1.2 m weighs S in the separation sum (S < 1: a close
+  neighbour answered too weakly, the CNN's error at a cube-map corner; S > 1: too strongly);
+- `farS`: every neighbour beyond 1.2 m weighs S in the separation sum (the approach before the
+  crossing answered too weakly or too strongly);
+- `reyS`: the whole Reynolds term times S (a policy that shrinks, or inflates, every answer);
+- `noiseS`: the Reynolds term plus white Gaussian noise of S m/s per axis, drawn anew every
+  control step (a policy with unbiased, uncorrelated errors of that size).
+
+Each keeps the migration term and the speed cap exact, as the CNN's flight does. Per variant:
+seeds whose closest pair is within 0.1 m of the teacher's (the bar's criterion), the mean
+difference, the mean order parameter and the centroid drift against the teacher's (two more of
+the bar's opposing criteria). Prints a line per variant and writes JSON (default
+benchmarks/results/crossing_sensitivity.json). About 1.5 s per 60 s flight on one core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from cnn_latency import RESULTS, machine, write_report
+from low_pass_tuning import training_seeds
+
+from companion.flocking import (
+    COINCIDENT_M,
+    FlockingParams,
+    cap_speed,
+    migration_velocity,
+)
+from sim_harness.sim.controllers import SENSE_NEIGHBOURS, Observation, TeacherController
+from sim_harness.sim.rollout import fly, summarize
+from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
+
+NEAR_M = 1.2  # "close range": the neighbours a `nearS` student weighs by S
+PAIR_MARGIN_M = 0.1  # the bar's criterion: at most this far below the teacher's closest pair
+DEFAULT_VARIANTS = (
+    "near0.7,near0.8,near0.9,near1.1,near1.25,far0.8,far0.9,far1.1,"
+    "rey0.8,rey0.9,rey1.1,noise0.1,noise0.2,noise0.3"
+)
+
+
+class StudentController:
+    """The teacher's law with one controlled error in its Reynolds term (see the module doc)."""
+
+    name = "student"
+    senses = frozenset({SENSE_NEIGHBOURS})
+
+    def __init__(self, params: FlockingParams, kind: str, value: float, seed: int) -> None:
+        self.params = params
+        self.kind = kind
+        self.value = value
+        self.seed = seed
+        self._rng = np.random.default_rng(seed)
+
+    def reset(self, n_agents: int) -> None:
+        del n_agents
+        self._rng = np.random.default_rng(self.seed)
+
+    def command(self, observation: Observation) -> np.ndarray:
+        sensing = observation.neighbours
+        if sensing is None:
+            raise ValueError("the student needs the 'neighbours' sense")
+        own = observation.own
+        p = self.params
+        valid = np.asarray(sensing.perceived, dtype=bool)
+        r = np.where(valid[..., None], np.asarray(sensing.offsets_world_enu, dtype=float), 0.0)
+        d2 = np.einsum("nmk,nmk->nm", r, r)
+        neighbour = valid & (d2 < p.r_max_m**2)
+        count = neighbour.sum(axis=1)
+        far_enough = neighbour & (d2 >= COINCIDENT_M**2)
+        inv_d2 = np.divide(1.0, d2, out=np.zeros_like(d2), where=far_enough)
+        if self.kind == "near":
+            inv_d2 = np.where(d2 < NEAR_M**2, self.value * inv_d2, inv_d2)
+        elif self.kind == "far":
+            inv_d2 = np.where(d2 < NEAR_M**2, inv_d2, self.value * inv_d2)
+        scale = np.divide(1.0, count, out=np.zeros(count.shape), where=count > 0)[:, None]
+        separation = -p.k_sep * scale * np.einsum("nm,nmk->nk", inv_d2, r)
+        cohesion = p.k_coh * scale * np.einsum("nm,nmk->nk", neighbour.astype(float), r)
+        reynolds = separation + cohesion
+        if self.kind == "rey":
+            reynolds = self.value * reynolds
+        elif self.kind == "noise":
+            reynolds = reynolds + self._rng.normal(0.0, self.value, size=reynolds.shape)
+        migration = migration_velocity(own.pos_world_enu, own.migration_point_world_enu, p.k_mig)
+        return cap_speed(reynolds + migration, p.v_max_mps)
+
+
+def parse_variant(key: str) -> tuple[str, float]:
+    for kind in ("near", "far", "rey", "noise"):
+        if key.startswith(kind):
+            try:
+                return kind, float(key[len(kind) :])
+            except ValueError:
+                break
+    raise ValueError(f"unknown variant {key!r}: nearS, farS, reyS or noiseS with S a number")
+
+
+def fly_one(variant: str, seed: int) -> dict[str, Any]:
+    """One opposing-goals flight (N = 9, the paper's gains) of the teacher or a student."""
+    params = FlockingParams()
+    scenario = build_scenario(ScenarioConfig(name="opposing", seed=seed, flocking=params))
+    if variant == "teacher":
+        controller: Any = TeacherController(params)
+    else:
+        kind, value = parse_variant(variant)
+        controller = StudentController(params, kind, value, seed)
+    log = fly(scenario, controller)
+    s = summarize(log)
+    step = int(np.nanargmin(log.d_min_m))
+    return {
+        "seed": seed,
+        "d_min_m": s["d_min_m"],
+        "at_s": float(log.time_s[step]),
+        "order_mean": s["order_mean"],
+        "drift_m": s["centroid_progress_m"],
+        "split": s["flock_split"],
+    }
+
+
+def compare(student: list[dict[str, Any]], teacher: list[dict[str, Any]]) -> dict[str, Any]:
+    """The bar's three opposing criteria that depend on the policy's accuracy, per variant."""
+    diff = np.array([s["d_min_m"] - t["d_min_m"] for s, t in zip(student, teacher, strict=True)])
+    below = [s["seed"] for s, d in zip(student, diff, strict=True) if d < -PAIR_MARGIN_M]
+    drift = float(np.median([s["drift_m"] for s in student]))
+    teacher_drift = float(np.median([t["drift_m"] for t in teacher]))
+    return {
+        "pair_within": len(student) - len(below),
+        "pair_below_seeds": below,
+        "mean_diff_m": float(diff.mean()),
+        "worst_diff_m": float(diff.min()),
+        "lowest_pair_m": float(min(s["d_min_m"] for s in student)),
+        "order_mean": float(np.mean([s["order_mean"] for s in student])),
+        "drift_ratio": drift / teacher_drift if teacher_drift else float("nan"),
+        "splits": sum(bool(s["split"]) for s in student),
+        "flights": student,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", default="300-339", help="training seeds (< 1000), A-B")
+    parser.add_argument("--variants", default=DEFAULT_VARIANTS, help="comma-separated")
+    parser.add_argument("--workers", type=int, default=2, help="processes (default 2)")
+    parser.add_argument("--out", type=Path, default=RESULTS / "crossing_sensitivity.json")
+    args = parser.parse_args()
+    seeds = training_seeds(args.seeds)
+    keys = [k for k in args.variants.split(",") if k]
+    for key in keys:
+        try:
+            parse_variant(key)
+        except ValueError as exc:
+            parser.error(f"--variants: {exc}")
+    if args.workers < 1:
+        parser.error(f"--workers must be >= 1, got {args.workers}")
+    start = time.perf_counter()
+    order = ["teacher", *keys]
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        futures = {(v, s): pool.submit(fly_one, v, s) for v in order for s in seeds}
+        flights = {v: [futures[(v, s)].result() for s in seeds] for v in order}
+    teacher = flights["teacher"]
+    t_order = float(np.mean([t["order_mean"] for t in teacher]))
+    print(
+        f"teacher    : lowest pair {min(t['d_min_m'] for t in teacher):.2f} m,"
+        f" order {t_order:.3f}, drift {np.median([t['drift_m'] for t in teacher]):.2f} m"
+    )
+    results = {}
+    for key in keys:
+        r = results[key] = compare(flights[key], teacher)
+        print(
+            f"{key:11s}: pair within {PAIR_MARGIN_M} m on {r['pair_within']}/{len(seeds)} seeds,"
+            f" mean {r['mean_diff_m']:+.3f} m, worst {r['worst_diff_m']:+.2f} m;"
+            f" order {r['order_mean']:.3f}; drift {100 * r['drift_ratio']:.0f} %",
+            flush=True,
+        )
+    report = {
+        "benchmark": "crossing_sensitivity",
+        "seeds": [seeds[0], seeds[-1]],
+        "near_m": NEAR_M,
+        "pair_margin_m": PAIR_MARGIN_M,
+        "teacher": {"order_mean": t_order, "flights": teacher},
+        "variants": results,
+        "wall_s": time.perf_counter() - start,
+        "machine": machine(),
+    }
+    write_report(report, args.out)
+
+
+if __name__ == "__main__":
+    main()

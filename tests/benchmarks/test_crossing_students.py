@@ -1,0 +1,83 @@
+"""The error models of `benchmarks/crossing_sensitivity.py` and the split of
+`benchmarks/separation_balance.py`: pure logic, checked against the flocking law itself."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+
+import crossing_sensitivity as cs
+import separation_balance as sb
+
+from companion.flocking import FlockingParams, flocking_command, pairwise_offsets
+from sim_harness.sim.controllers import NeighbourSensing, Observation, OwnState
+
+
+def _flock(seed: int = 3, n: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(-2.0, 2.0, size=(n, 3))
+    q = rng.normal(size=(n, 4))
+    return pos, q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _observation(pos: np.ndarray, goal: np.ndarray) -> Observation:
+    n = len(pos)
+    own = OwnState(0.0, pos, np.zeros_like(pos), np.tile([1.0, 0, 0, 0], (n, 1)), goal)
+    sensing = NeighbourSensing(pairwise_offsets(pos), ~np.eye(n, dtype=bool))
+    return Observation(own, neighbours=sensing)
+
+
+def test_an_exact_student_is_the_teacher_and_a_weak_one_holds_closer() -> None:
+    params = FlockingParams(v_max_mps=50.0)  # no cap: the parts stay visible
+    pos, _ = _flock()
+    pos[1] = pos[0] + [0.7, 0.0, 0.0]  # one pair inside the near radius
+    goal = np.tile([30.0, 0.0, 5.0], (len(pos), 1))
+    teacher = flocking_command(pos, goal, params).final
+    obs = _observation(pos, goal)
+    for kind in ("near", "far", "rey"):
+        exact = cs.StudentController(params, kind, 1.0, seed=0).command(obs)
+        np.testing.assert_allclose(exact, teacher, atol=1e-12)
+    weak = cs.StudentController(params, "near", 0.5, seed=0).command(obs)
+    away = (pos[0] - pos[1]) / np.linalg.norm(pos[0] - pos[1])
+    # agent 0 flees agent 1 less when the near pair weighs half
+    assert weak[0] @ away < teacher[0] @ away - 0.1
+    noisy = cs.StudentController(params, "noise", 0.2, seed=4)
+    first = noisy.command(obs)
+    noisy.reset(len(pos))
+    np.testing.assert_array_equal(noisy.command(obs), first)  # seeded: a run is repeatable
+    assert not np.allclose(first, teacher)
+
+
+def test_variant_names_are_checked() -> None:
+    assert cs.parse_variant("far0.9") == ("far", 0.9)
+    with pytest.raises(ValueError, match="unknown variant 'fast1.1'"):
+        cs.parse_variant("fast1.1")
+    with pytest.raises(ValueError, match="unknown variant 'near'"):
+        cs.parse_variant("near")
+
+
+def test_the_three_parts_sum_to_the_teachers_body_frame_command() -> None:
+    from companion.frames import quat_to_rotmat
+
+    params = FlockingParams()
+    pos, q = _flock(seed=7, n=5)
+    pos[2] = pos[4] + [0.0, 0.8, 0.3]  # a pair within the near radius, so each part is present
+    meta = {
+        "agent": np.arange(5),
+        "pos_world_enu": pos,
+        "q_world_body": q,
+    }
+    parts = sb.decompose(meta, np.arange(5), params, near_m=1.2)
+    rey = flocking_command(pos, None, params).reynolds
+    body = np.einsum("nji,nj->ni", quat_to_rotmat(q), rey)  # R^T v per agent
+    np.testing.assert_allclose(parts.sum(axis=1), body, atol=1e-12)
+    gains = sb.fit(parts.sum(axis=1) * 0.8, parts)
+    assert np.abs(parts[:, 0]).max() > 0.5  # the near pair's separation is in the fit
+    assert gains["gain_sep_near"] == pytest.approx(0.8)
+    assert gains["gain_sep_far"] == pytest.approx(0.8)
+    assert gains["gain_coh"] == pytest.approx(0.8)
