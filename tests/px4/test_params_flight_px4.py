@@ -32,7 +32,8 @@ def mean_vz_ned(gcs: GroundStation, seconds: float) -> tuple[float, float]:
     since = time.monotonic() - seconds
     targets = [msg.vz for t, msg in list(gcs.targets) if t >= since]  # list(): one C-level copy
     samples = gcs.positions_since(since)
-    assert len(targets) > 5 and len(samples) > 10, (len(targets), len(samples))
+    # a handful of each is enough for a mean: under two busy loops PX4 streamed 5 of each in 0.5 s
+    assert len(targets) >= 3 and len(samples) >= 3, (len(targets), len(samples))
     return sum(targets) / len(targets), sum(s.vz for s in samples) / len(samples)
 
 
@@ -43,9 +44,9 @@ def test_px4_flies_the_daemons_climb_and_a_clean_exit_only_warns_of_the_lost_com
     assert PARAMS["MPC_Z_VEL_MAX_UP"] >= -CLIMB_NED_MPS  # the file lets PX4 fly it
     run = daemon_run(shipped, policy=make_policy(CLIMB_BODY_FLU), engage="auto")
     gcs.wait_until(lambda: gcs.mode is Px4Mode.OFFBOARD, ENGAGE_GUARD_S, "OFFBOARD")
-    time.sleep(3.0)  # PX4's acceleration limit (and a low-pass, if the config sets one) settle
+    time.sleep(3.5)  # PX4's acceleration limit (and a low-pass, if the config sets one) settle
     assert gcs.mode is Px4Mode.OFFBOARD
-    setpoint_vz, vehicle_vz = mean_vz_ned(gcs, 0.5)
+    setpoint_vz, vehicle_vz = mean_vz_ned(gcs, 1.0)
     # Stock-file PX4 clipped its setpoint to -1.00 here; now it flies the command.
     assert abs(setpoint_vz - CLIMB_NED_MPS) <= 0.1, setpoint_vz
     assert vehicle_vz <= 0.85 * CLIMB_NED_MPS, vehicle_vz
