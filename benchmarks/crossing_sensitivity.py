@@ -38,10 +38,10 @@ from cnn_latency import RESULTS, machine, write_report
 from low_pass_tuning import training_seeds
 
 from companion.flocking import (
-    COINCIDENT_M,
     FlockingParams,
     cap_speed,
     migration_velocity,
+    reynolds_from_offsets,
 )
 from sim_harness.sim.controllers import SENSE_NEIGHBOURS, Observation, TeacherController
 from sim_harness.sim.rollout import fly, summarize
@@ -79,19 +79,15 @@ class StudentController:
         own = observation.own
         p = self.params
         valid = np.asarray(sensing.perceived, dtype=bool)
-        r = np.where(valid[..., None], np.asarray(sensing.offsets_world_enu, dtype=float), 0.0)
-        d2 = np.einsum("nmk,nmk->nm", r, r)
-        neighbour = valid & (d2 < p.r_max_m**2)
-        count = neighbour.sum(axis=1)
-        far_enough = neighbour & (d2 >= COINCIDENT_M**2)
-        inv_d2 = np.divide(1.0, d2, out=np.zeros_like(d2), where=far_enough)
-        if self.kind == "near":
-            inv_d2 = np.where(d2 < NEAR_M**2, self.value * inv_d2, inv_d2)
-        elif self.kind == "far":
-            inv_d2 = np.where(d2 < NEAR_M**2, inv_d2, self.value * inv_d2)
-        scale = np.divide(1.0, count, out=np.zeros(count.shape), where=count > 0)[:, None]
-        separation = -p.k_sep * scale * np.einsum("nm,nmk->nk", inv_d2, r)
-        cohesion = p.k_coh * scale * np.einsum("nm,nmk->nk", neighbour.astype(float), r)
+        offsets = np.asarray(sensing.offsets_world_enu, dtype=float)
+        separation, cohesion, count = reynolds_from_offsets(offsets, valid, p)
+        if self.kind in ("near", "far"):
+            # the separation of the neighbours in range, averaged over all of them as the law does
+            near = np.linalg.norm(np.where(valid[..., None], offsets, 0.0), axis=-1) < NEAR_M
+            subset = valid & (near if self.kind == "near" else ~near)
+            part, _, n_part = reynolds_from_offsets(offsets, subset, p)
+            share = np.divide(n_part, count, out=np.zeros(count.shape), where=count > 0)
+            separation = separation + (self.value - 1.0) * share[:, None] * part
         reynolds = separation + cohesion
         if self.kind == "rey":
             reynolds = self.value * reynolds
