@@ -115,6 +115,7 @@ def main() -> None:
     params = DatasetSpec.from_dict(dataset.manifest["spec"]).flocking
     parts = decompose(split.meta, rows, params, args.near)
     target = np.asarray(split.targets[rows], dtype=np.float64)
+    images = np.asarray(split.images[rows])  # read once, answered by every model
     # the label is the three parts' sum (a check that the decomposition is the teacher's)
     label_error = float(np.abs(parts.sum(axis=1) - target).max())
     nearest = np.asarray(split.meta["nearest_m"][rows], dtype=np.float64)
@@ -122,7 +123,7 @@ def main() -> None:
     start = time.perf_counter()
     fits: dict[str, Any] = {}
     for name, answer in [("teacher (the label)", target)] + [
-        (str(m), policy_answers(m, np.asarray(split.images[rows]))) for m in args.model
+        (str(m), policy_answers(m, images)) for m in args.model
     ]:
         fits[name] = {"all": fit(answer, parts), "crowded": fit(answer[crowded], parts[crowded])}
         for which, f in fits[name].items():
