@@ -15,6 +15,8 @@ seeds (the evaluation seeds stay unseen) against the exact teacher on the same s
 - `farS`: every neighbour beyond 1.2 m weighs S in the separation sum (the approach before the
   crossing answered too weakly or too strongly);
 - `reyS`: the whole Reynolds term times S (a policy that shrinks, or inflates, every answer);
+- `sepS`: the whole separation term times S, at every distance (the law with the separation gain
+  k_sep x S: a more, or less, cautious teacher);
 - `noiseS`: the Reynolds term plus white Gaussian noise of S m/s per axis, drawn anew every
   control step (a policy with unbiased, uncorrelated errors of that size).
 
@@ -23,6 +25,10 @@ seeds whose closest pair is within 0.1 m of the teacher's (the bar's criterion),
 difference, the mean order parameter and the centroid drift against the teacher's (two more of
 the bar's opposing criteria). Prints a line per variant and writes JSON (default
 benchmarks/results/crossing_sensitivity.json). About 1.5 s per 60 s flight on one core.
+
+`--experiment` flies another of the suites' experiments instead (`n12`, `vmax4`, `common`, ...:
+its flock size, speed cap and migration speed); each variant's line then also counts the seeds
+with a pair under 1 m (the bar's absolute criterion) and the median arrival against the teacher's.
 """
 
 from __future__ import annotations
@@ -43,9 +49,10 @@ from companion.flocking import (
     migration_velocity,
     reynolds_from_offsets,
 )
+from sim_harness.experiments.suites import EXPERIMENTS
 from sim_harness.sim.controllers import SENSE_NEIGHBOURS, Observation, TeacherController
 from sim_harness.sim.rollout import fly, summarize
-from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
+from sim_harness.sim.scenarios import build_scenario
 
 NEAR_M = 1.2  # "close range": the neighbours a `nearS` student weighs by S
 PAIR_MARGIN_M = 0.1  # the bar's criterion: at most this far below the teacher's closest pair
@@ -81,7 +88,9 @@ class StudentController:
         valid = np.asarray(sensing.perceived, dtype=bool)
         offsets = np.asarray(sensing.offsets_world_enu, dtype=float)
         separation, cohesion, count = reynolds_from_offsets(offsets, valid, p)
-        if self.kind in ("near", "far"):
+        if self.kind == "sep":
+            separation = self.value * separation
+        elif self.kind in ("near", "far"):
             # the separation of the neighbours in range, averaged over all of them as the law does
             near = np.linalg.norm(np.where(valid[..., None], offsets, 0.0), axis=-1) < NEAR_M
             subset = valid & (near if self.kind == "near" else ~near)
@@ -98,19 +107,20 @@ class StudentController:
 
 
 def parse_variant(key: str) -> tuple[str, float]:
-    for kind in ("near", "far", "rey", "noise"):
+    for kind in ("near", "far", "rey", "sep", "noise"):
         if key.startswith(kind):
             try:
                 return kind, float(key[len(kind) :])
             except ValueError:
                 break
-    raise ValueError(f"unknown variant {key!r}: nearS, farS, reyS or noiseS with S a number")
+    raise ValueError(f"unknown variant {key!r}: nearS, farS, reyS, sepS or noiseS with S a number")
 
 
-def fly_one(variant: str, seed: int) -> dict[str, Any]:
-    """One opposing-goals flight (N = 9, the paper's gains) of the teacher or a student."""
-    params = FlockingParams()
-    scenario = build_scenario(ScenarioConfig(name="opposing", seed=seed, flocking=params))
+def fly_one(variant: str, seed: int, experiment: str = "opposing") -> dict[str, Any]:
+    """One flight of an experiment (default opposing goals, N = 9) by the teacher or a student."""
+    config = EXPERIMENTS[experiment].scenario_config(seed)
+    params = config.flocking
+    scenario = build_scenario(config)
     if variant == "teacher":
         controller: Any = TeacherController(params)
     else:
@@ -126,23 +136,31 @@ def fly_one(variant: str, seed: int) -> dict[str, Any]:
         "order_mean": s["order_mean"],
         "drift_m": s["centroid_progress_m"],
         "split": s["flock_split"],
+        "arrival_time_s": s["arrival_time_s"],
     }
 
 
 def compare(student: list[dict[str, Any]], teacher: list[dict[str, Any]]) -> dict[str, Any]:
-    """The bar's three opposing criteria that depend on the policy's accuracy, per variant."""
+    """The bar's criteria that depend on the policy's accuracy, per variant."""
     diff = np.array([s["d_min_m"] - t["d_min_m"] for s, t in zip(student, teacher, strict=True)])
     below = [s["seed"] for s, d in zip(student, diff, strict=True) if d < -PAIR_MARGIN_M]
     drift = float(np.median([s["drift_m"] for s in student]))
     teacher_drift = float(np.median([t["drift_m"] for t in teacher]))
+    arrivals = [r["arrival_time_s"] for r in student]
+    teacher_arrivals = [r["arrival_time_s"] for r in teacher]
+    arrival_ratio = float("nan")
+    if None not in arrivals and None not in teacher_arrivals:
+        arrival_ratio = float(np.median(arrivals) / np.median(teacher_arrivals))
     return {
         "pair_within": len(student) - len(below),
         "pair_below_seeds": below,
         "mean_diff_m": float(diff.mean()),
         "worst_diff_m": float(diff.min()),
         "lowest_pair_m": float(min(s["d_min_m"] for s in student)),
+        "under_1m": sum(s["d_min_m"] < 1.0 for s in student),
         "order_mean": float(np.mean([s["order_mean"] for s in student])),
         "drift_ratio": drift / teacher_drift if teacher_drift else float("nan"),
+        "arrival_ratio": arrival_ratio,
         "splits": sum(bool(s["split"]) for s in student),
         "flights": student,
     }
@@ -153,8 +171,15 @@ def main() -> None:
     parser.add_argument("--seeds", default="300-339", help="training seeds (< 1000), A-B")
     parser.add_argument("--variants", default=DEFAULT_VARIANTS, help="comma-separated")
     parser.add_argument("--workers", type=int, default=2, help="processes (default 2)")
-    parser.add_argument("--out", type=Path, default=RESULTS / "crossing_sensitivity.json")
+    parser.add_argument(
+        "--experiment", default="opposing", choices=tuple(EXPERIMENTS), help="(default opposing)"
+    )
+    parser.add_argument(
+        "--out", type=Path, default=None, help="default results/crossing_sensitivity[_EXP].json"
+    )
     args = parser.parse_args()
+    suffix = "" if args.experiment == "opposing" else f"_{args.experiment}"
+    out = args.out or RESULTS / f"crossing_sensitivity{suffix}.json"
     seeds = training_seeds(args.seeds)
     keys = [k for k in args.variants.split(",") if k]
     for key in keys:
@@ -167,12 +192,16 @@ def main() -> None:
     start = time.perf_counter()
     order = ["teacher", *keys]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        futures = {(v, s): pool.submit(fly_one, v, s) for v in order for s in seeds}
+        futures = {
+            (v, s): pool.submit(fly_one, v, s, args.experiment) for v in order for s in seeds
+        }
         flights = {v: [futures[(v, s)].result() for s in seeds] for v in order}
     teacher = flights["teacher"]
     t_order = float(np.mean([t["order_mean"] for t in teacher]))
+    t_under = sum(t["d_min_m"] < 1.0 for t in teacher)
     print(
-        f"teacher    : lowest pair {min(t['d_min_m'] for t in teacher):.2f} m,"
+        f"teacher    : lowest pair {min(t['d_min_m'] for t in teacher):.2f} m"
+        f" ({t_under} seeds under 1 m),"
         f" order {t_order:.3f}, drift {np.median([t['drift_m'] for t in teacher]):.2f} m"
     )
     results = {}
@@ -181,20 +210,23 @@ def main() -> None:
         print(
             f"{key:11s}: pair within {PAIR_MARGIN_M} m on {r['pair_within']}/{len(seeds)} seeds,"
             f" mean {r['mean_diff_m']:+.3f} m, worst {r['worst_diff_m']:+.2f} m;"
-            f" order {r['order_mean']:.3f}; drift {100 * r['drift_ratio']:.0f} %",
+            f" lowest {r['lowest_pair_m']:.2f} m ({r['under_1m']} under 1 m);"
+            f" order {r['order_mean']:.3f}; drift {100 * r['drift_ratio']:.0f} %;"
+            f" arrival {r['arrival_ratio']:.2f}x",
             flush=True,
         )
     report = {
         "benchmark": "crossing_sensitivity",
+        "experiment": args.experiment,
         "seeds": [seeds[0], seeds[-1]],
         "near_m": NEAR_M,
         "pair_margin_m": PAIR_MARGIN_M,
-        "teacher": {"order_mean": t_order, "flights": teacher},
+        "teacher": {"order_mean": t_order, "under_1m": t_under, "flights": teacher},
         "variants": results,
         "wall_s": time.perf_counter() - start,
         "machine": machine(),
     }
-    write_report(report, args.out)
+    write_report(report, out)
 
 
 if __name__ == "__main__":

@@ -140,6 +140,15 @@ def add_learning_commands(sub: Any) -> None:
         help="plateau: the paper's (lr halved after 10 epochs without improvement); cosine: "
         "lr decays batch by batch to 0 over --max-epochs (anneals a short fine-tune)",
     )
+    t.add_argument(
+        "--separation-scale",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="learn the flocking law with its separation gain k_sep x S: every label (validation "
+        "too) recomputed from the flock's stored positions; a student that keeps its margin on "
+        "the cautious side (default 1: the recorded labels; range 0.5-2)",
+    )
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(handler=_train)
 
@@ -217,6 +226,7 @@ def _train(args: argparse.Namespace) -> int:
         shortfall_within_m=args.shortfall_within,
         weight_flock=args.weight_flock,
         lr_schedule=args.lr_schedule,
+        separation_scale=args.separation_scale,
         progress=not args.no_progress,
         command=command_line(),
     )

@@ -40,7 +40,9 @@ import torch
 
 from companion.errors import ConfigError
 from sim_harness.learning.batches import (
+    JoinedSplit,
     SplitArrays,
+    StackedImages,
     concat_splits,
     epoch_rows,
     load_batch,
@@ -72,6 +74,7 @@ from sim_harness.learning.flock_loss import (
 )
 from sim_harness.learning.lr_schedule import cosine_lr
 from sim_harness.learning.model import DroNet, build_model, parameter_groups
+from sim_harness.learning.relabel import cautious_targets
 from sim_harness.learning.sample_weights import SampleWeighting
 from sim_harness.learning.symmetry import augment_with_views
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
@@ -225,7 +228,21 @@ def train(config: TrainConfig) -> TrainResult:
             train_split.n_samples,
             int(counts.sum()),
         )
-    return train_on(config, dataset.manifest, train_split, dataset.split("val"))
+    val_split: SplitArrays = dataset.split("val")
+    if config.separation_scale != 1.0:
+        train_split = relabelled(train_split, config.separation_scale, "the training data")
+        val_split = relabelled(val_split, config.separation_scale, f"{config.dataset}'s val split")
+        log.info("labels: the flocking law with k_sep x %g", config.separation_scale)
+    return train_on(config, dataset.manifest, train_split, val_split)
+
+
+def relabelled(split: SplitArrays, separation_scale: float, what: str) -> JoinedSplit:
+    """`split` with the labels of the law whose separation gain is scaled (`learning.relabel`)."""
+    images = split.images
+    if not isinstance(images, StackedImages):
+        images = StackedImages([np.asarray(images)])
+    targets = cautious_targets(split.targets, split.meta, separation_scale, what=what)
+    return JoinedSplit(images=images, targets=targets, meta=split.meta)
 
 
 def make_optimizer(model: DroNet, config: TrainConfig) -> torch.optim.SGD:

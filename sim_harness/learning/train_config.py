@@ -76,6 +76,9 @@ class TrainConfig:
     weight_flock: float | None = None
     # "plateau" (the paper's) or "cosine" (`sim_harness.learning.lr_schedule`)
     lr_schedule: str = "plateau"
+    # learn the flocking law with its separation gain times this (`sim_harness.learning.relabel`:
+    # every label, validation's too, recomputed from the stored positions); 1: the recorded labels
+    separation_scale: float = 1.0
 
     def __post_init__(self) -> None:
         require_int_range("max_epochs", self.max_epochs, 1)
@@ -114,6 +117,7 @@ class TrainConfig:
         require_range("shortfall_within_m", self.shortfall_within_m, 0.0, 20.0, low_inclusive=False)
         if self.weight_flock is not None:
             require_range("weight_flock", self.weight_flock, 0.0, 100.0, low_inclusive=False)
+        require_range("separation_scale", self.separation_scale, 0.5, 2.0)
         if self.lr_schedule not in LR_SCHEDULES:
             raise ConfigError(
                 f"lr_schedule: {self.lr_schedule!r} is not one of {', '.join(LR_SCHEDULES)}"

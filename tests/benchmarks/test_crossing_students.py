@@ -39,9 +39,13 @@ def test_an_exact_student_is_the_teacher_and_a_weak_one_holds_closer() -> None:
     goal = np.tile([30.0, 0.0, 5.0], (len(pos), 1))
     teacher = flocking_command(pos, goal, params).final
     obs = _observation(pos, goal)
-    for kind in ("near", "far", "rey"):
+    for kind in ("near", "far", "rey", "sep"):
         exact = cs.StudentController(params, kind, 1.0, seed=0).command(obs)
         np.testing.assert_allclose(exact, teacher, atol=1e-12)
+    # `sepS` is the law with the separation gain k_sep x S
+    cautious = cs.StudentController(params, "sep", 1.3, seed=0).command(obs)
+    stronger = FlockingParams(v_max_mps=50.0, k_sep=params.k_sep * 1.3)
+    np.testing.assert_allclose(cautious, flocking_command(pos, goal, stronger).final, atol=1e-12)
     weak = cs.StudentController(params, "near", 0.5, seed=0).command(obs)
     away = (pos[0] - pos[1]) / np.linalg.norm(pos[0] - pos[1])
     # agent 0 flees agent 1 less when the near pair weighs half
@@ -55,6 +59,7 @@ def test_an_exact_student_is_the_teacher_and_a_weak_one_holds_closer() -> None:
 
 def test_variant_names_are_checked() -> None:
     assert cs.parse_variant("far0.9") == ("far", 0.9)
+    assert cs.parse_variant("sep1.2") == ("sep", 1.2)
     with pytest.raises(ValueError, match="unknown variant 'fast1.1'"):
         cs.parse_variant("fast1.1")
     with pytest.raises(ValueError, match="unknown variant 'near'"):

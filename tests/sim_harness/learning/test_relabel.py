@@ -1,0 +1,99 @@
+"""A more cautious teacher's labels, recomputed from each flock's stored positions."""
+
+import numpy as np
+import pytest
+import torch
+
+from companion.errors import ConfigError
+from companion.flocking import FlockingParams, flocking_command
+from companion.frames import quat_to_rotmat
+from sim_harness.dataset.store import open_dataset
+from sim_harness.learning.relabel import cautious_targets
+from sim_harness.learning.train import TrainConfig, train
+
+
+def _flocks(sizes: tuple[int, ...], seed: int = 5) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Stored-like labels (the law's Reynolds command, body frame) and meta of several flocks."""
+    rng = np.random.default_rng(seed)
+    labels, pos_all, q_all, run, time = [], [], [], [], []
+    for k, n in enumerate(sizes):
+        pos = rng.uniform(-3.0, 3.0, size=(n, 3))
+        pos[1] = pos[0] + [0.6, 0.2, 0.0]  # a close pair: the separation term matters
+        q = rng.normal(size=(n, 4))
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        rey = flocking_command(pos, None, FlockingParams()).reynolds
+        labels.append(np.einsum("nji,nj->ni", quat_to_rotmat(q), rey))
+        pos_all.append(pos)
+        q_all.append(q)
+        run += [k // 2] * n  # two time steps per run
+        time += [0.1 * (k % 2)] * n
+    meta = {
+        "pos_world_enu": np.concatenate(pos_all).astype(np.float32),
+        "q_world_body": np.concatenate(q_all).astype(np.float32),
+        "run": np.array(run),
+        "time_s": np.array(time, dtype=np.float32),
+    }
+    return np.concatenate(labels).astype(np.float32), meta
+
+
+def test_the_labels_are_the_law_with_the_scaled_separation_gain() -> None:
+    labels, meta = _flocks((9, 3, 12, 9))
+    np.testing.assert_allclose(cautious_targets(labels, meta, 1.0), labels, atol=1e-6)
+    scaled = cautious_targets(labels, meta, 1.25)
+    pos = meta["pos_world_enu"].astype(np.float64)
+    rot = quat_to_rotmat(meta["q_world_body"].astype(np.float64))
+    params = FlockingParams(k_sep=FlockingParams().k_sep * 1.25)
+    start = 0
+    for n in (9, 3, 12, 9):
+        rows = slice(start, start + n)
+        rey = flocking_command(pos[rows], None, params).reynolds
+        expected = np.einsum("nji,nj->ni", rot[rows], rey)
+        np.testing.assert_allclose(scaled[rows], expected, atol=1e-4)
+        start += n
+    # the close pair now flees each other harder
+    away = pos[0] - pos[1]
+    world0 = rot[0] @ scaled[0]
+    assert world0 @ away > (rot[0] @ labels[0]) @ away + 0.1
+
+
+def test_an_incomplete_flock_is_refused_naming_the_sample() -> None:
+    labels, meta = _flocks((9, 9))
+    keep = np.arange(len(labels)) != 4  # one drone of the first flock missing
+    cut = {k: v[keep] for k, v in meta.items()}
+    with pytest.raises(ConfigError, match=r"separation_scale: the data's labels .*run 0"):
+        cautious_targets(labels[keep], cut, 1.2, what="the data")
+
+
+def test_data_without_positions_is_refused_naming_the_column() -> None:
+    labels, meta = _flocks((3,))
+    del meta["pos_world_enu"]
+    with pytest.raises(ConfigError, match="pos_world_enu"):
+        cautious_targets(labels, meta, 1.2)
+
+
+def test_a_scale_out_of_range_names_the_field(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="separation_scale"):
+        TrainConfig(dataset=tmp_path, out_dir=tmp_path, separation_scale=3.0)
+
+
+@pytest.mark.slow
+def test_a_run_learns_and_validates_on_the_cautious_labels(smoke_dataset, tmp_path) -> None:
+    config = TrainConfig(
+        dataset=smoke_dataset,
+        out_dir=tmp_path / "run",
+        max_epochs=1,
+        batch_size=32,
+        lr=1e-3,
+        separation_scale=1.3,
+        progress=False,
+    )
+    result = train(config)
+    # the untrained network answers zero (its head starts at zero), so its validation loss is
+    # the mean square of the labels it is judged on: the cautious ones
+    val = open_dataset(smoke_dataset).split("val")
+    cautious = cautious_targets(val.targets, val.meta, 1.3)
+    assert result.initial_val_loss == pytest.approx(float(np.mean(cautious**2)), rel=1e-4)
+    recorded = float(np.mean(np.square(val.targets)))
+    assert abs(float(np.mean(cautious**2)) - recorded) > 0.01 * recorded  # not the recorded ones
+    saved = torch.load(tmp_path / "run" / "last.ckpt", weights_only=False)
+    assert saved["config"]["separation_scale"] == 1.3
