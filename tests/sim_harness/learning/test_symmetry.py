@@ -170,7 +170,10 @@ def test_a_symmetrized_export_loads_records_its_group_and_computes_the_average(t
                 for v in GROUPS["c4"]
             ]
         ).mean(0)
-        np.testing.assert_allclose(loaded.module(images).double(), by_hand, atol=2e-5)
+        # the export's own bound (`max_abs_diff_mps` below): the frozen graph folds the
+        # standardization into conv1, so float32 rounding differs from the eager network's by a
+        # few 1e-5 m/s, more on some CPUs' kernels (2.4e-5 seen on an AMD EPYC)
+        np.testing.assert_allclose(loaded.module(images).double(), by_hand, atol=1e-4)
     assert result.max_abs_diff_mps <= 1e-4
     record = json.loads(path.with_suffix(".json").read_text())
     assert record["metadata"]["runtime"]["symmetry"]["group"] == "c4"
