@@ -268,6 +268,11 @@ class AutopilotEmulator:
         """The emulator's clock (s): the time base of its setpoint, command and mode logs."""
         return time.monotonic() - self._t0_s
 
+    @property
+    def clock_origin_s(self) -> float:
+        """`time.monotonic()` at this emulator's clock zero (to compare two emulators' logs)."""
+        return self._t0_s
+
     def _run(self) -> None:
         sock = self._sock
         assert sock is not None
