@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -38,9 +39,7 @@ class _Px4:
     modes: list[ModeChange]
     clock_origin_s: float = 0.0
     config: Any = field(
-        default_factory=lambda: type(
-            "C", (), {"px4": type("P", (), {"offboard_loss_timeout_s": 1.0})}
-        )
+        default_factory=lambda: SimpleNamespace(px4=SimpleNamespace(offboard_loss_timeout_s=1.0))
     )
 
     def setpoints(self) -> list[SetpointRecord]:
@@ -77,7 +76,9 @@ def _log(folder: Path) -> Path:
     return folder
 
 
-def _judge(tmp_path: Path, drone1: _Drone, drone2: _Drone, rest: list[SetpointRecord]) -> dict:
+def _judge(
+    tmp_path: Path, drone1: _Drone, drone2: _Drone, rest: list[SetpointRecord]
+) -> dict[str, Any]:
     """unplug_and_kill.toml's outcomes: drone1 unplugged at 6 s for 5 s, drone2 killed at 9 s."""
     plan = load_plan(PLANS_DIR / "unplug_and_kill.toml", 4)
     others = [_Drone(_Px4(rest, [ModeChange(0.0, HOLD, OFF, "DO_SET_MODE")]), tmp_path)] * 2
