@@ -1,4 +1,8 @@
-"""Real PX4 firmware (SITL + SIH) for the tests in this folder, started once per session.
+"""Real PX4 firmware (SITL + SIH) for the tests in this folder, started once for the folder.
+
+They are stopped when the folder's last test is done (package scope; hence `__init__.py`): two
+hovering PX4s left running to the end of the session took CPU from every later test, and the HIL
+swarm flights after them starved in CI (physics 6 s behind the wall clock).
 
 Two PX4 instances boot in parallel in one loopback-only network namespace: instance 0 gets the
 shipped parameter file loaded over MAVLink (as QGroundControl would), instance 1 stays stock. A
@@ -73,7 +77,7 @@ def load_params(gcs: GroundStation, rows: list[ParamRow]) -> dict[str, Any]:
     return loaded
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def sitl(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Px4Sitl]:
     reason = unavailable_reason()
     if reason is not None:
@@ -92,7 +96,7 @@ def sitl(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Px4Sitl]:
         yield sitl
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def vehicles(sitl: Px4Sitl) -> Iterator[dict[int, Vehicle]]:
     """Both PX4s ready, instance 0 with the shipped parameters, both hovering at 5 m in HOLD."""
     stations = {
