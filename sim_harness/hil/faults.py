@@ -51,7 +51,7 @@ import numpy as np
 from companion.camera.layout import FACE_NAMES
 from companion.errors import ConfigError
 from companion.flight_log import summarize_log
-from sim_harness.hil.px4_logic import Px4Mode
+from sim_harness.hil.px4_logic import ModeChange, Px4Mode
 
 if TYPE_CHECKING:
     from sim_harness.hil.drone import HilDrone
@@ -248,7 +248,8 @@ class FaultRunner:
         failsafe_after_s = float(daemon["failsafe_after_s"])
         loss_s = drone.px4.config.px4.offboard_loss_timeout_s
         setpoints = [s for s in drone.px4.setpoints() if s.t_s >= fired_s]
-        modes = [m for m in drone.px4.mode_changes() if m.t_s >= fired_s]
+        history = drone.px4.mode_changes()
+        modes = [m for m in history if m.t_s >= fired_s]
         back_in_offboard = any(m.new is Px4Mode.OFFBOARD for m in modes)
         obs: dict[str, Any] = {}
         kind = event.kind
@@ -281,9 +282,9 @@ class FaultRunner:
                     and not back_in_offboard
                 )
                 window_end = min(hold, fired_s + HOVER_WITHIN_S + failsafe_after_s + 1.0)
-                judged = self._judge_timing(drone, fired_s, window_end, on_time, obs)
-                final = drone.px4.mode_changes()[-1:]
-                ok = bool(final) and final[0].new is Px4Mode.HOLD and (on_time or not judged)
+                tick_s = 1.0 / float(daemon["rate_hz"])
+                judged = self._judge_timing(drone, fired_s, window_end, tick_s, on_time, obs)
+                ok = bool(history) and history[-1].new is Px4Mode.HOLD and (on_time or not judged)
         elif kind in ("camera_garbage", "camera_corrupt"):
             expected = "keeps flying, in OFFBOARD, daemon alive"
             obs["mode_changes"] = [m.new.name for m in modes]
@@ -304,7 +305,7 @@ class FaultRunner:
             obs["back_in_offboard"] = back_in_offboard
             ok = last - fired_s <= 2.0 and not back_in_offboard
         else:
-            ok, expected = self._daemon_outcome(event, drone, fired_s, modes, loss_s, obs)
+            ok, expected = self._daemon_outcome(event, drone, fired_s, history, daemon, loss_s, obs)
         return FaultOutcome(event, expected, bool(ok), obs)
 
     def _judge_timing(
@@ -312,6 +313,7 @@ class FaultRunner:
         drone: HilDrone,
         fired_s: float,
         end_s: float,
+        tick_s: float,
         on_time: bool,
         obs: dict[str, Any],
     ) -> bool:
@@ -324,7 +326,7 @@ class FaultRunner:
         *and* so did the unfaulted daemons' (their median): a stall only the faulted drone had
         is the fault's doing and is judged.
         """
-        bound_s = STALL_PERIODS / float(drone.config_document()["daemon"]["rate_hz"])
+        bound_s = STALL_PERIODS * tick_s
         start_s = fired_s - 1.0
         own = _longest_gap([s.t_s for s in drone.px4.setpoints()], start_s, end_s)
         swarm = self._swarm_gap_s(drone, start_s, end_s)
@@ -353,32 +355,33 @@ class FaultRunner:
         event: FaultEvent,
         drone: HilDrone,
         fired_s: float,
-        modes: list[Any],
+        history: list[ModeChange],
+        daemon: dict[str, Any],
         loss_s: float,
         obs: dict[str, Any],
     ) -> tuple[bool, str]:
         # Judged on the mode in force, not on a transition after the signal: on a starved
         # machine the vehicle may already be in Hold (PX4's offboard-loss failsafe while the
         # daemon got no CPU) when the signal comes, and then Hold must simply last.
-        history = drone.px4.mode_changes()
         at_fire = _in_force(history, fired_s)
         obs["mode_at_fire"] = None if at_fire is None else at_fire.new.name
         if event.kind == "daemon_sigterm":
-            limit_s = float(drone.config_document()["daemon"]["shutdown_timeout_s"])
+            limit_s = float(daemon["shutdown_timeout_s"])
             expected = f"Hold within {limit_s:g} s, exit 0, complete flight log"
         else:
             limit_s = loss_s + 1.0
             expected = f"PX4 offboard-loss failsafe (Hold) within {loss_s:g} s + 1 s, readable log"
         hold = _in_force(history, fired_s + limit_s)
-        in_hold = hold is not None and hold.new is Px4Mode.HOLD
-        obs["hold_after_s"] = hold.t_s - fired_s if in_hold and hold is not None else math.inf
-        obs["hold_reason"] = hold.reason if in_hold and hold is not None else None
+        if hold is not None and hold.new is not Px4Mode.HOLD:
+            hold = None
+        obs["hold_after_s"] = math.inf if hold is None else hold.t_s - fired_s
+        obs["hold_reason"] = None if hold is None else hold.reason
         logs = sorted(drone.flights_dir.glob("*.mcap"))
         summaries = [summarize_log(p) for p in logs]
         obs["log_readable"] = bool(summaries) and all(s["message_count"] > 0 for s in summaries)
         obs["exit_code"] = drone.exit_code
-        stays = in_hold and not any(
-            m.new is Px4Mode.OFFBOARD for m in history if hold is not None and m.t_s > hold.t_s
+        stays = hold is not None and not any(
+            m.new is Px4Mode.OFFBOARD for m in history if m.t_s > hold.t_s
         )
         if event.kind == "daemon_sigterm":
             obs["log_complete"] = bool(summaries) and all(s["complete"] for s in summaries)
@@ -388,13 +391,13 @@ class FaultRunner:
             by_px4 = (
                 at_fire is None
                 or at_fire.new is not Px4Mode.OFFBOARD
-                or (obs["hold_reason"] is not None and "lost" in obs["hold_reason"])
+                or (hold is not None and "lost" in hold.reason)
             )
             ok = stays and by_px4 and obs["log_readable"]
         return bool(ok), expected
 
 
-def _in_force(history: Sequence[Any], t_s: float) -> Any:
+def _in_force(history: Sequence[ModeChange], t_s: float) -> ModeChange | None:
     """The mode change in force at `t_s` (the last one at or before it), or None."""
     return next((m for m in reversed(history) if m.t_s <= t_s), None)
 
