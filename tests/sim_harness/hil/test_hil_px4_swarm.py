@@ -5,7 +5,7 @@ The harness starts its own two PX4 instances (its own loopback-only namespace, a
 session's), takes both off to their spawn altitudes as a pilot would, and hands each daemon the
 common goal as `migration_point_global`. Judged: both engaged (PX4 reported OFFBOARD), both
 moved towards the goal (PX4's own position, placed in the world), both daemons ended with exit
-0 and PX4 in Hold. Lateness is reported, not asserted (CI machines are shared). ~45 s here.
+0 and PX4 in Hold. Lateness is reported, not asserted (CI machines are shared). 35-45 s here.
 
 In the default run since 2026-12-02 (it was opt-in after one of three loaded full-suite runs
 timed out in the harness's take-off: it ran then beside the session-scoped PX4 pair of
