@@ -1,7 +1,10 @@
-"""`swarm-sim train | evaluate | export | gradcam`: the learning pipeline from the command line.
+"""`swarm-sim train | evaluate | export | average | gradcam`: the learning pipeline from the
+command line.
 
     swarm-sim train --dataset data/quick-s0 --out runs/train/quick-s0      # --resume to continue
     swarm-sim export --checkpoint runs/train/quick-s0 --dataset data/quick-s0 --out models/M.pt
+    swarm-sim average --models models/A.pt runs/train/B --weights 0.5 0.5 --dataset data/quick-s0 \
+        --out models/AB.pt                     # one network from the mean of fine-tunes' weights
     swarm-sim evaluate --model models/M.pt --dataset data/quick-s0 --split test --out DIR
     swarm-sim gradcam --model models/M.pt --dataset data/quick-s0 --samples 0,5,9 --out DIR
 
@@ -36,7 +39,8 @@ def _samples(text: str) -> list[int]:
 
 
 def add_learning_commands(sub: Any) -> None:
-    """Register `train`, `evaluate`, `export` and `gradcam` on the top-level subparsers."""
+    """Register `train`, `evaluate`, `export`, `average` and `gradcam` on the top-level
+    subparsers."""
     t = sub.add_parser(
         "train",
         help="train the CNN on a dataset (paper hyper-parameters)",
@@ -183,6 +187,32 @@ def add_learning_commands(sub: Any) -> None:
     )
     x.set_defaults(handler=_export)
 
+    a = sub.add_parser(
+        "average",
+        help="one network from the weighted mean of several networks' weights (fine-tunes of "
+        "one ancestor), evaluated on the test split and written as a policy",
+    )
+    a.add_argument(
+        "--models", type=Path, nargs="+", required=True, help="policy files or checkpoints (>= 2)"
+    )
+    a.add_argument(
+        "--weights",
+        type=float,
+        nargs="+",
+        default=None,
+        help="each model's share, in (0, 1], summing to 1 (default equal)",
+    )
+    a.add_argument("--dataset", type=Path, required=True, help="the dataset they were trained on")
+    a.add_argument("--out", type=Path, required=True, help="policy file (.pt)")
+    a.add_argument("--eval-out", type=Path, default=None, help="default runs/eval/<out>-test")
+    a.add_argument(
+        "--symmetry",
+        choices=tuple(GROUPS),
+        default="none",
+        help="average the result over the rig's symmetric views, as `export --symmetry`",
+    )
+    a.set_defaults(handler=_average)
+
     g = sub.add_parser("gradcam", help="Grad-CAM saliency PNGs for dataset samples")
     g.add_argument("--model", type=Path, default=SHIPPED_MODEL_PATH, help="policy or checkpoint")
     g.add_argument("--dataset", type=Path, required=True)
@@ -272,18 +302,13 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    import torch
-
     from sim_harness.dataset.store import open_dataset
     from sim_harness.learning.checkpoint import LAST_NAME, CheckpointError, load_checkpoint
-    from sim_harness.learning.evaluate import evaluate_split
     from sim_harness.learning.export import (
         checkpoint_chain,
-        export_policy,
         load_eager_model,
         require_output_gain,
         scale_output,
-        to_torchscript,
     )
 
     if args.out.suffix != ".pt":
@@ -302,9 +327,6 @@ def _export(args: argparse.Namespace) -> int:
         )
     run_dir = args.checkpoint if args.checkpoint.is_dir() else args.checkpoint.parent
     last = load_checkpoint(run_dir / LAST_NAME) if (run_dir / LAST_NAME).exists() else state
-    scripted = to_torchscript(model, symmetry=args.symmetry)
-    test = dataset.split("test")
-    report = evaluate_split(scripted, test, eval_out, title=f"{args.out.name} on test")
     training = {
         "command": state["command"],
         "epochs_run": last["epoch"],
@@ -316,15 +338,32 @@ def _export(args: argparse.Namespace) -> int:
         "output_gain": args.output_gain,
         **checkpoint_chain(state),
     }
+    _evaluate_and_write(model, dataset, training, args.out, eval_out, args.symmetry)
+    return 0
+
+
+def _evaluate_and_write(
+    model: Any, dataset: Any, training: dict[str, Any], out: Path, eval_out: Path, symmetry: str
+) -> None:
+    """Export `model` as the policy file `out`: its graph evaluated on `dataset`'s test split
+    (report in `eval_out`), the result and `training` recorded in its metadata."""
+    import torch
+
+    from sim_harness.learning.evaluate import evaluate_split
+    from sim_harness.learning.export import export_policy, to_torchscript
+
+    scripted = to_torchscript(model, symmetry=symmetry)
+    test = dataset.split("test")
+    report = evaluate_split(scripted, test, eval_out, title=f"{out.name} on test")
     result = export_policy(
         model,
-        args.out,
+        out,
         dataset.manifest,
         {"split": "test", **report},
         training,
         scripted=scripted,
         check_images_u8=torch.from_numpy(test.images[: min(16, test.n_samples)].copy()),
-        symmetry=args.symmetry,
+        symmetry=symmetry,
     )
     print(f"test {_describe_metrics(report['metrics'])}")
     print(
@@ -332,6 +371,34 @@ def _export(args: argparse.Namespace) -> int:
         f"{result.max_abs_diff_mps:.1e} m/s), {result.path.with_suffix('.json').name}, "
         f"{result.weights_path.name}; evaluation in {eval_out}/"
     )
+
+
+def _average(args: argparse.Namespace) -> int:
+    from sim_harness.dataset.store import open_dataset
+    from sim_harness.learning.average import average_policies, averaged_chain, require_weights
+
+    if args.out.suffix != ".pt":
+        raise ConfigError(f"out: the policy file must end in .pt, got {args.out}")
+    require_weights(args.weights, len(args.models))  # before anything is read
+    eval_out = args.eval_out or Path("runs/eval") / f"{args.out.stem}-test"
+    require_writable_dir(args.out.parent)
+    require_writable_dir(eval_out, "eval-out")
+    dataset = open_dataset(args.dataset)
+    model, sources = average_policies(args.models, args.weights)
+    for source in sources:
+        if source.dataset_id is not None and source.dataset_id != dataset.id:
+            raise ConfigError(
+                f"models: {source.path} was trained on dataset {source.dataset_id}, "
+                f"but {args.dataset} is {dataset.id}"
+            )
+    shares = ", ".join(f"{s.weight:g} x {s.path}" for s in sources)
+    print(f"averaged the weights of {shares}")
+    training = {
+        "command": command_line(),
+        "output_gain": 1.0,
+        **averaged_chain(sources, command_line()),
+    }
+    _evaluate_and_write(model, dataset, training, args.out, eval_out, args.symmetry)
     return 0
 
 
