@@ -24,7 +24,7 @@ from typing import Any
 import torch
 
 from companion.errors import ConfigError, ModelError
-from sim_harness.learning.checkpoint import BEST_NAME
+from sim_harness.learning.checkpoint import checkpoint_file
 from sim_harness.learning.export import (
     checkpoint_chain,
     is_checkpoint,
@@ -77,7 +77,7 @@ def require_weights(weights: Sequence[float] | None, count: int) -> list[float]:
 def _source(path: Path, weight: float, state: dict[str, Any]) -> Source:
     """What the average records of one network (`state`: its checkpoint or policy metadata)."""
     if is_checkpoint(path):
-        file = path / BEST_NAME if path.is_dir() else path  # what load_checkpoint reads
+        file = checkpoint_file(path)  # what load_checkpoint reads
         history = checkpoint_chain(state)
     else:
         file = path

@@ -47,11 +47,15 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
     os.replace(tmp, path)
 
 
+def checkpoint_file(path: Path) -> Path:
+    """The file a checkpoint path names: a run directory means its `best.ckpt`."""
+    path = Path(path)
+    return path / BEST_NAME if path.is_dir() else path
+
+
 def load_checkpoint(path: Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """Read a checkpoint (a run directory means its `best.ckpt`)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / BEST_NAME
+    path = checkpoint_file(path)
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as exc:
