@@ -199,6 +199,15 @@ class GroundStation:
         gp = self.global_position
         return None if gp is None else (gp.alt - gp.relative_alt) / 1000.0
 
+    @property
+    def height_above_home_m(self) -> float | None:
+        """Height above home (m): GLOBAL_POSITION_INT's relative_alt, the reference NAV_TAKEOFF's
+        target is given in (`takeoff`). Not LOCAL_POSITION_NED's -z: the local frame's origin is
+        where PX4's estimator started, which can sit tenths of a metre off the ground (0.74 m above
+        it on a loaded machine, where a take-off to 4.59 m then held at a local 3.85 m)."""
+        gp = self.global_position
+        return None if gp is None else gp.relative_alt / 1000.0
+
     def wait_until(self, condition: Callable[[], bool], timeout_s: float, what: str) -> float:
         """Seconds until `condition` held (polled every 20 ms); raises after `timeout_s`."""
         start = time.monotonic()
@@ -268,13 +277,15 @@ class GroundStation:
             if result is not MavResult.ACCEPTED:
                 raise GroundStationError(f"arm/takeoff refused: {result.name}")
 
-        def holding() -> bool:
-            pos = self.position()
-            at_altitude = pos is not None and -pos.z > altitude_m - 0.5
-            return self.mode is Px4Mode.HOLD and at_altitude
-
-        self.wait_until(holding, timeout_s, f"HOLD at {altitude_m:g} m after takeoff")
+        what = f"HOLD at {altitude_m:g} m after takeoff"
+        self.wait_until(lambda: self.holding_at(altitude_m), timeout_s, what)
         return time.monotonic() - start
+
+    def holding_at(self, altitude_m: float, tolerance_m: float = 0.5) -> bool:
+        """PX4 in HOLD within `tolerance_m` under `altitude_m` above home (or higher)."""
+        height = self.height_above_home_m
+        high_enough = height is not None and height > altitude_m - tolerance_m
+        return self.mode is Px4Mode.HOLD and high_enough
 
     def get_param(self, name: str, timeout_s: float = 1.0) -> float | None:
         """PARAM_REQUEST_READ by name; None when PX4 does not answer (it has no such name)."""
