@@ -5,7 +5,7 @@ One tick, for one drone or vectorized over N agents (the simulation's CNN contro
     v_body  = policy output, body FLU (m/s)
     v_filt  = low-pass(v_body)                            (optional, first order, per agent)
     v_world = cap(R_world_body(q at capture) v_filt + v_mig, v_max)        world ENU
-    v_final = cap(altitude_guard(v_world, z), v_max)
+    v_final = cap(altitude_guard(v_world, z - z_home), v_max)      (the band is above home)
     yaw     = heading of v_final, held while |v_final,xy| < yaw_hold_speed
     PX4     = (enu_to_ned(v_final), yaw_enu_to_ned(yaw))                    NED, radians
 
@@ -36,7 +36,10 @@ SECTION = "control"
 
 @dataclass(frozen=True)
 class ControlConfig:
-    """The `[control]` section. Speeds in m/s, altitudes in m (world ENU z, EKF origin = 0)."""
+    """The `[control]` section. Speeds in m/s. Points in the world ENU frame (PX4's local frame,
+    z = 0 at its EKF origin); the altitude band in m above PX4's home, as PX4's own geofence and
+    take-off heights are (the EKF origin until PX4 reports a home: the two can differ by tenths of
+    a metre or more, 0.74 m seen in SITL on a loaded machine)."""
 
     k_mig: float = 1.0  # migration speed (paper: 1)
     v_max_mps: float = 2.0  # speed cap of the final command (paper: 2)
@@ -297,11 +300,14 @@ class ControlLaw:
         yaw_enu_rad: ArrayLike,
         dt_s: float | None = None,
         migration_point_world_enu: ArrayLike | None = None,
+        home_z_enu_m: ArrayLike = 0.0,
     ) -> ControlOutput:
         """One tick. Shapes (3,), (4,), (3,), () for one drone or (N, 3), (N, 4), (N, 3), (N,).
 
         `yaw_enu_rad` is the measured yaw, used to initialize the held yaw. The migration point
         defaults to the configured one; pass (N, 3) (NaN rows: none) for per-agent points.
+        `home_z_enu_m`: the home's height in the world frame, from which the altitude band is
+        measured (0: the frame's origin).
         """
         cfg = self.config
         v_body = np.asarray(vel_body_flu, dtype=np.float64)
@@ -337,7 +343,7 @@ class ControlLaw:
         v_world = compose_velocity(v_filt, safe_q, safe_pos, target, cfg.k_mig, cfg.v_max_mps)
         v_guarded = altitude_guard(
             v_world,
-            safe_pos[..., 2],
+            safe_pos[..., 2] - np.asarray(home_z_enu_m, dtype=np.float64),
             cfg.altitude_floor_m,
             cfg.altitude_ceiling_m,
             cfg.altitude_push_gain_per_s,

@@ -406,10 +406,19 @@ class Daemon:
             yaw_enu,
             dt_s=dt_s if dt_s is not None and dt_s > 0.0 else None,
             migration_point_world_enu=migration,
+            home_z_enu_m=self._home_z_enu_m(),
         )
         if not control.ok:
             return control, False, control.reason
         return control, True, self._stale_problem(snapshot, now_s)
+
+    def _home_z_enu_m(self) -> float:
+        """PX4's home height in the local frame (the altitude band's zero); 0, the EKF origin,
+        until PX4 reports a finite home."""
+        assert self._commander is not None
+        home = self._commander.autopilot.telemetry().home
+        down = float("nan") if home is None else float(home.value.local_ned_m[2])
+        return -down if math.isfinite(down) else 0.0
 
     def _migration_point(self) -> tuple[FloatArray | None, str]:
         """See `MigrationFromHome.resolve`; (None, "") when the point is not global."""

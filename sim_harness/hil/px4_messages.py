@@ -61,11 +61,15 @@ _CAPABILITIES = (
 
 @dataclass(frozen=True)
 class Home:
-    """Where local NED (0, 0, 0) is on the globe: degrees and metres above mean sea level."""
+    """Where local NED (0, 0, 0), PX4's EKF origin, is on the globe: degrees and metres above
+    mean sea level; and where the home PX4 reports lies in that frame (NED, m): at the origin
+    by default, but real PX4 can start its origin off the home (0.74 m above it seen in SITL on
+    a loaded machine). The emulated vehicle's ground stays the origin's plane."""
 
     lat_deg: float
     lon_deg: float
     alt_amsl_m: float
+    local_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def to_global(self, pos_ned_m: np.ndarray) -> tuple[float, float, float]:
         """(lat deg, lon deg, alt AMSL m) of a local NED position (flat earth, fine for km)."""
@@ -131,7 +135,7 @@ def attitude(
 def global_position(
     mav: mavlink.MAVLink, time_boot_ms: int, state: VehicleStateNed, home: Home
 ) -> mavlink.MAVLink_message:
-    """GLOBAL_POSITION_INT relative to `home`."""
+    """GLOBAL_POSITION_INT: the position on the globe, relative_alt above the home."""
     lat, lon, alt = home.to_global(state.pos_ned_m)
     vx, vy, vz = (round(float(c) * 100.0) for c in state.vel_ned_mps)
     hdg_cdeg = round(math.degrees(state.yaw_ned_rad) * 100.0) % 36000
@@ -140,7 +144,7 @@ def global_position(
         round(lat * 1e7),
         round(lon * 1e7),
         round(alt * 1000.0),
-        round(state.altitude_m * 1000.0),
+        round((state.altitude_m + home.local_ned_m[2]) * 1000.0),
         vx,
         vy,
         vz,
@@ -185,14 +189,16 @@ def extended_sys_state(mav: mavlink.MAVLink, landed: LandedState) -> mavlink.MAV
 
 
 def home_position(mav: mavlink.MAVLink, home: Home) -> mavlink.MAVLink_message:
-    """HOME_POSITION at local NED origin."""
+    """HOME_POSITION: the home on the globe and in the local frame."""
+    lat, lon, alt = home.to_global(np.asarray(home.local_ned_m, dtype=np.float64))
+    north, east, down = home.local_ned_m
     return mav.home_position_encode(
-        round(home.lat_deg * 1e7),
-        round(home.lon_deg * 1e7),
-        round(home.alt_amsl_m * 1000.0),
-        0.0,
-        0.0,
-        0.0,
+        round(lat * 1e7),
+        round(lon * 1e7),
+        round(alt * 1000.0),
+        north,
+        east,
+        down,
         [1.0, 0.0, 0.0, 0.0],
         0.0,
         0.0,

@@ -193,6 +193,15 @@ def test_control_law_applies_altitude_guard_and_filter() -> None:
     np.testing.assert_allclose(out.vel_final_enu, [0.0, 0.0, 0.5])  # 1 m below floor: push up
 
 
+def test_control_law_measures_the_altitude_band_from_home() -> None:
+    # 5 m above the frame's origin but only 0.5 m above a home 4.5 m up: under the 1 m floor.
+    law = ControlLaw(ControlConfig(altitude_floor_m=1.0, altitude_ceiling_m=30.0))
+    out = law.step([0.0, 0.0, -1.0], Q_LEVEL, [0.0, 0.0, 5.0], 0.0, home_z_enu_m=4.5)
+    np.testing.assert_allclose(out.vel_final_enu, [0.0, 0.0, 0.5])  # pushed up, not down
+    out = law.step([0.0, 0.0, -1.0], Q_LEVEL, [0.0, 0.0, 5.0], 0.0)  # from the origin: free
+    np.testing.assert_allclose(out.vel_final_enu, [0.0, 0.0, -1.0])
+
+
 def test_control_law_hovers_on_nan_attitude_and_holds_yaw() -> None:
     law = ControlLaw(ControlConfig(altitude_floor_m=None))
     first = law.step([1.0, 0.0, 0.0], q_yaw_deg(90.0), ORIGIN, math.pi / 2)

@@ -39,6 +39,7 @@ from companion.flight_log import TOPIC_HEALTH, TOPIC_SETPOINT, LogReader
 from companion.groundstation import SwarmTable, monitor_zenoh_config
 from companion.health import HealthState
 from companion.policy import Policy
+from sim_harness.hil import px4_messages as msgs
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
 from sim_harness.hil.camera_emulator import CameraEmulator
 from sim_harness.hil.drone import toml_text
@@ -577,3 +578,38 @@ def test_a_global_migration_point_is_converted_with_px4s_home(
     ]
     (converted,) = [e for e in events if e.get("event") == "migration point"]
     np.testing.assert_allclose(converted["detail"]["migration_point_enu"], [0, 100, 5], atol=0.01)
+
+
+def test_the_altitude_floor_is_kept_above_px4s_home(
+    tmp_path: Path, cameras: CameraEmulator, make_policy_file: Any
+) -> None:
+    """PX4's EKF origin need not be at its home (real PX4 starts it where its first estimate
+    was). Here home is 4.5 m above the origin and the vehicle hovers 5 m above the origin: 0.5 m
+    above home, under the 1 m floor. A policy asking to descend at 0.5 m/s is never flown down;
+    the daemon pushes the vehicle up instead (at 1 m/s per metre under the floor)."""
+    home = msgs.Home(47.397742, 8.545594, 488.0, local_ned_m=(0.0, 0.0, -4.5))
+    config = EmulatorConfig.hovering(
+        free_udp_port(), 5.0, heartbeat_rate_hz=20.0, start_yaw_rad=START_YAW_NED, home=home
+    )
+    with AutopilotEmulator(config) as px4:
+        doc = document(
+            tmp_path, cameras, px4, make_policy_file("constant", (0.0, 0.0, -0.5)), free_tcp_port()
+        )
+        daemon = Daemon(config_from_dict(doc), handle_signals=False)
+
+        def flown() -> list[Any]:
+            return [s for s in px4.setpoints() if not is_zero(s)]
+
+        async def body() -> None:
+            run = asyncio.create_task(daemon.run())
+            try:
+                await until(lambda: px4.mode is Px4Mode.OFFBOARD, GUARD_S, "OFFBOARD")
+                await until(lambda: len(flown()) >= 20, GUARD_S, "20 setpoints flown")
+            finally:
+                daemon.request_stop("test over")
+                await asyncio.wait_for(run, 15.0)
+
+        asyncio.run(body())
+        ups = [-s.vz_mps for s in flown()]  # NED down -> up
+    assert min(ups) > -0.05, "a descent below the floor above home was flown"
+    assert max(ups) > 0.3  # pushed up: 0.5 m under the floor, 0.5 m/s
