@@ -68,7 +68,10 @@ def test_sihs_vehicle_is_placed_where_it_is_and_the_estimate_error_kept(tmp_path
     where = home_of(DEFAULT_ORIGIN, np.array([3.0, -2.0, 4.0]))
     q_ned = quat_enu_flu_to_ned_frd(quat_from_yaw(-0.5))
     truth = TruthSample(
-        2.0, GlobalPosition(*vars(where).values()), np.array([1.0, 0.0, -0.5]), q_ned
+        2.0,
+        GlobalPosition(where.lat_deg, where.lon_deg, where.alt_amsl_m),
+        np.array([1.0, 0.0, -0.5]),
+        q_ned,
     )
     estimate = PositionSample(2.0, 0.0, 0.0, -3.0, 0.0, 0.0, 0.0)  # 3 m up at the start point
     gcs = SimpleNamespace(position=lambda: estimate, attitude=None, truth=truth)
