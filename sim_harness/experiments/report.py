@@ -14,11 +14,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import os
+import platform
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+import torch
 
 from sim_harness.experiments import stats as suite_stats
 from sim_harness.experiments.bar import BarCheck, bar_checks
@@ -338,11 +343,38 @@ def write_report(
         strip = save_gradcam_strip(result, out_dir / "gradcam.png", GRADCAM_TIME_S)
         if strip is not None:
             lines += ["## Grad-CAM", "", f"![Grad-CAM]({strip.path.name})", "", strip.caption, ""]
-    lines += ["## Timings (wall clock, this machine)", "", *_timing_lines(result)]
+    where = machine()
+    lines += [
+        "## Timings (wall clock, this machine)",
+        "",
+        f"{where['cpu']}, {where['cpus']} CPUs, torch {where['torch']}: the CNN's flights "
+        "repeat exactly on one machine, not across CPUs (a flock amplifies float rounding).",
+        "",
+        *_timing_lines(result),
+    ]
     report = out_dir / "report.md"
     report.write_text("\n".join(lines).rstrip() + "\n")
     _write_json(result, out_dir / "results.json", tables, checks)
     return report
+
+
+def machine() -> dict[str, Any]:
+    """What flew the suite. The CNN's flights are exactly repeatable on one machine, but not
+    across CPUs: the kernels torch picks for another instruction set round differently (~1e-6
+    m/s), and a flock amplifies that (round 45's opposing seed 1012: closest pair 1.37 m on one
+    machine, 1.34 m on another, the same file and code), so a figure says where it was measured."""
+    cpu = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    return {
+        "cpu": cpu,
+        "cpus": os.cpu_count(),
+        "platform": platform.platform(),
+        "torch": torch.__version__,
+    }
 
 
 def _write_json(
@@ -363,6 +395,7 @@ def _write_json(
         "ground_seed": cfg.ground_seed,
         "rates": {"physics_hz": cfg.rates.physics_hz, "control_hz": cfg.rates.control_hz},
         "wall_time_s": result.wall_time_s,
+        "machine": machine(),
         "tables": tables,
         "bar": [{"name": c.name, "passed": c.passed, "detail": c.detail} for c in checks],
         "timings": {

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import matplotlib.image as mpimg
 import pytest
+import torch
 
 from sim_harness.cli import main
 from sim_harness.experiments.report import _model_lines
@@ -75,6 +76,8 @@ def test_results_json_holds_the_tables_computed_from_the_runs(paper_suite_dir) -
     data = json.loads((paper_suite_dir / "results.json").read_text())
     assert data["suite"] == "paper" and data["seeds"] == list(SEEDS)
     assert len(data["model"]["sha256"]) == 64
+    assert data["machine"]["cpu"] and data["machine"]["torch"] == torch.__version__
+    assert f"{data['machine']['cpu']}, " in (paper_suite_dir / "report.md").read_text()
     for experiment in ("common", "opposing"):
         for controller in ("teacher", "cnn"):
             runs = summaries(paper_suite_dir, experiment, controller)
