@@ -348,7 +348,7 @@ def write_report(
         "## Timings (wall clock, this machine)",
         "",
         f"{where['cpu']}, {where['cpus']} CPUs, torch {where['torch']}: the CNN's flights "
-        "repeat exactly on one machine, not across CPUs (a flock amplifies float rounding).",
+        "repeat exactly on one machine, not across machines (a flock amplifies float rounding).",
         "",
         *_timing_lines(result),
     ]
@@ -359,10 +359,11 @@ def write_report(
 
 
 def machine() -> dict[str, Any]:
-    """What flew the suite. The CNN's flights are exactly repeatable on one machine, but not
-    across CPUs: the kernels torch picks for another instruction set round differently (~1e-6
-    m/s), and a flock amplifies that (round 45's opposing seed 1012: closest pair 1.37 m on one
-    machine, 1.34 m on another, the same file and code), so a figure says where it was measured."""
+    """What flew the suite. The CNN's flights repeat exactly on one machine, but not across
+    machines: another CPU's kernels (or another install's libraries) round differently, about
+    1e-6 m/s, and a flock amplifies that (round 45's opposing seed 1012: closest pair 1.37 m in
+    one session, 1.34 m in a later one, the same file, code and torch), so a figure says where
+    it was measured."""
     cpu = platform.processor() or platform.machine()
     with contextlib.suppress(OSError):
         for line in Path("/proc/cpuinfo").read_text().splitlines():
