@@ -399,6 +399,8 @@ class Daemon:
         q_capture = self._attitudes.at(image.oldest_capture_time_s, max_age_s)
         dt_s = None if self._last_control_s is None else now_s - self._last_control_s
         self._last_control_s = now_s
+        assert self._commander is not None
+        home = self._commander.autopilot.telemetry().home  # the EKF origin until PX4 reports one
         control = self._law.step(
             output.vel_body_flu,
             NAN4 if q_capture is None else q_capture,
@@ -406,19 +408,11 @@ class Daemon:
             yaw_enu,
             dt_s=dt_s if dt_s is not None and dt_s > 0.0 else None,
             migration_point_world_enu=migration,
-            home_z_enu_m=self._home_z_enu_m(),
+            home_z_enu_m=0.0 if home is None else home.value.z_enu_m,  # the band's zero
         )
         if not control.ok:
             return control, False, control.reason
         return control, True, self._stale_problem(snapshot, now_s)
-
-    def _home_z_enu_m(self) -> float:
-        """PX4's home height in the local frame (the altitude band's zero); 0, the EKF origin,
-        until PX4 reports a finite home."""
-        assert self._commander is not None
-        home = self._commander.autopilot.telemetry().home
-        down = float("nan") if home is None else float(home.value.local_ned_m[2])
-        return -down if math.isfinite(down) else 0.0
 
     def _migration_point(self) -> tuple[FloatArray | None, str]:
         """See `MigrationFromHome.resolve`; (None, "") when the point is not global."""

@@ -51,6 +51,11 @@ class HomePosition:
     position: GlobalPosition
     local_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
+    @property
+    def z_enu_m(self) -> float:
+        """The home's height in the local ENU frame (up from the EKF origin)."""
+        return -self.local_ned_m[2]
+
 
 def require_global(field: str, value: object) -> tuple[float, float, float]:
     """`[lat_deg, lon_deg, alt_amsl_m]` with latitude in [-90, 90], longitude in [-180, 180] and

@@ -354,7 +354,7 @@ def write_report(
     ]
     report = out_dir / "report.md"
     report.write_text("\n".join(lines).rstrip() + "\n")
-    _write_json(result, out_dir / "results.json", tables, checks)
+    _write_json(result, out_dir / "results.json", tables, checks, where)
     return report
 
 
@@ -383,6 +383,7 @@ def _write_json(
     path: Path,
     tables: dict[str, Any],
     checks: list[BarCheck],
+    where: dict[str, Any],
 ) -> None:
     cfg = result.config
     data = {
@@ -396,7 +397,7 @@ def _write_json(
         "ground_seed": cfg.ground_seed,
         "rates": {"physics_hz": cfg.rates.physics_hz, "control_hz": cfg.rates.control_hz},
         "wall_time_s": result.wall_time_s,
-        "machine": machine(),
+        "machine": where,
         "tables": tables,
         "bar": [{"name": c.name, "passed": c.passed, "detail": c.detail} for c in checks],
         "timings": {
