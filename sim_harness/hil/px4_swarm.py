@@ -193,7 +193,9 @@ class Px4Swarm:
     def _poses(self, now: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         """World ENU positions, velocities (N, 3) and attitudes (N, 4) of every drone: SIH's
         simulated vehicle (HIL_STATE_QUATERNION) where PX4 sends it, else PX4's estimate
-        (LOCAL_POSITION_NED from the start point, ATTITUDE_QUATERNION)."""
+        (LOCAL_POSITION_NED from the start point, ATTITUDE_QUATERNION), its height taken above
+        home (GLOBAL_POSITION_INT's relative_alt) where PX4 sends that: the local frame's origin
+        is where the estimator started, which can sit tenths of a metre off the ground."""
         n = self.scenario.n_agents
         pos = self.scenario.initial_pos_world_enu.copy()
         vel = np.zeros((n, 3))
@@ -203,6 +205,9 @@ class Px4Swarm:
             estimate = None
             if sample is not None:
                 estimate = self.homes[i] + ned_to_enu(np.array([sample.x, sample.y, sample.z]))
+                height = drone.gcs.height_above_home_m
+                if height is not None:
+                    estimate[2] = self.homes[i][2] + height
                 pos[i] = estimate
                 vel[i] = ned_to_enu(np.array([sample.vx, sample.vy, sample.vz]))
                 attitude = drone.gcs.attitude

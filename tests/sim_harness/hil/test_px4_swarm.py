@@ -1,6 +1,7 @@
 """The real-PX4 HIL harness's frames, without PX4: the goal handed to each daemon as a global
 point comes back, through the daemon's own conversion with its PX4's home, as the scenario's goal
-in that drone's local frame; PX4's pose reported on the GCS link lands at the right world point."""
+in that drone's local frame; PX4's pose reported on the GCS link lands at the right world point
+(its height above home, not above the estimator's origin)."""
 
 from __future__ import annotations
 
@@ -47,6 +48,7 @@ def test_px4s_local_pose_is_placed_from_its_start_point(tmp_path: Path) -> None:
             position=lambda: PositionSample(1.0, 2.0, -1.0, -5.0, 0.5, 0.0, -0.1),  # N, E, D
             attitude=(1.0, q_ned),
             truth=None,
+            height_above_home_m=None,  # no GLOBAL_POSITION_INT yet
         )
         hil.drones.append(SimpleNamespace(gcs=gcs))  # type: ignore[arg-type]
     pos, vel, q = hil._poses(now=1.01)
@@ -55,6 +57,23 @@ def test_px4s_local_pose_is_placed_from_its_start_point(tmp_path: Path) -> None:
         np.testing.assert_allclose(vel[i], [0.0, 0.5, 0.1])
         np.testing.assert_allclose(q[i], quat_from_yaw(0.3), atol=1e-12)
     assert max(hil.pose_gap_max_s) <= 0.011
+
+
+def test_px4s_estimate_is_placed_at_its_height_above_home_not_above_its_origin(
+    tmp_path: Path,
+) -> None:
+    # Seen on a loaded machine: PX4's local frame started 0.74 m above the ground, so a drone
+    # 4.59 m above home reported a local z of -3.85 m. The world must draw it at 4.59 m.
+    hil = swarm(tmp_path, n=1)
+    gcs = SimpleNamespace(
+        position=lambda: PositionSample(1.0, 2.0, -1.0, -3.85, 0.0, 0.0, 0.0),
+        attitude=None,
+        truth=None,
+        height_above_home_m=4.59,
+    )
+    hil.drones.append(SimpleNamespace(gcs=gcs))  # type: ignore[arg-type]
+    pos, _, _ = hil._poses(now=1.01)
+    np.testing.assert_allclose(pos[0], hil.homes[0] + [-1.0, 2.0, 4.59])
 
 
 def test_the_shipped_parameters_go_to_px4_without_board_only_names() -> None:
@@ -74,7 +93,9 @@ def test_sihs_vehicle_is_placed_where_it_is_and_the_estimate_error_kept(tmp_path
         q_ned,
     )
     estimate = PositionSample(2.0, 0.0, 0.0, -3.0, 0.0, 0.0, 0.0)  # 3 m up at the start point
-    gcs = SimpleNamespace(position=lambda: estimate, attitude=None, truth=truth)
+    gcs = SimpleNamespace(
+        position=lambda: estimate, attitude=None, truth=truth, height_above_home_m=3.0
+    )
     hil.drones.append(SimpleNamespace(gcs=gcs))  # type: ignore[arg-type]
     pos, vel, q = hil._poses(now=2.0)
     np.testing.assert_allclose(pos[0], [3.0, -2.0, 4.0], atol=0.01)
