@@ -15,8 +15,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
-import platform
 import statistics
 import tempfile
 import time
@@ -30,6 +28,7 @@ from companion.camera.rig import Rig
 from companion.camera.serial_link import links_from_config, run_links
 from companion.camera.slot import CameraFrame
 from sim_harness.hil.camera_emulator import CameraEmulator
+from sim_harness.machine import machine
 
 RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
 
@@ -117,11 +116,7 @@ def main() -> None:
         "benchmark": "camera_links",
         "rate_hz": args.rate_hz,
         "cameras": len(FACE_NAMES),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-        },
+        "machine": machine(),
         "results": results,
     }
     print(json.dumps(report, indent=2))

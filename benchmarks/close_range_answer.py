@@ -26,11 +26,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from cnn_latency import RESULTS, machine, write_report
+from cnn_latency import RESULTS, write_report
 from command_shrinkage import policy_answers, print_table, shrinkage_table
 
 from companion.frames import quat_to_rotmat
 from sim_harness.dataset.store import open_dataset
+from sim_harness.machine import machine
 
 BINS_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.6, float("inf"))
 FACENESS_BINS = (0.5, 0.7, 0.8, 0.9, 1.01)

@@ -18,13 +18,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 from pathlib import Path
 from typing import Any
-
-import numpy as np
-import torch
 
 from sim_harness.experiments.vision_controller import (
     VisionControlConfig,
@@ -32,6 +28,7 @@ from sim_harness.experiments.vision_controller import (
     load_policy,
 )
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
+from sim_harness.machine import machine
 from sim_harness.sim.renderers import RENDERERS, make_renderer
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
@@ -126,15 +123,8 @@ def main() -> None:
         "physics_hz": rates.physics_hz,
         "control_hz": rates.control_hz,
         "torch_threads": args.threads,
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "numpy": np.__version__,
-            "torch": torch.__version__,
-            # Other jobs share the cores: a load above the core count inflates every stage.
-            "load_average_1m": {"before": load_before, "after": os.getloadavg()[0]},
-        },
+        # Other jobs share the cores: a load above the core count inflates every stage.
+        "machine": machine(load_average_1m={"before": load_before, "after": os.getloadavg()[0]}),
         "results": results,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -29,7 +29,6 @@ import argparse
 import copy
 import json
 import os
-import platform
 import tempfile
 import time
 import warnings
@@ -42,6 +41,7 @@ import torch
 from companion.model_file import enable_graph_fusion, graph_is_fused
 from sim_harness.learning.export import export_policy, load_eager_model
 from sim_harness.learning.model import DroNet, build_model
+from sim_harness.machine import machine
 
 RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
 
@@ -189,16 +189,6 @@ def main() -> None:
         "machine": machine(),
     }
     write_report(report, args.out)
-
-
-def machine() -> dict[str, object]:
-    """What the figures were measured on."""
-    return {
-        "cpus": os.cpu_count(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-    }
 
 
 def write_report(report: dict[str, object], out: Path) -> None:

@@ -21,7 +21,6 @@ import argparse
 import asyncio
 import json
 import os
-import platform
 import random
 import signal
 import socket
@@ -48,6 +47,7 @@ from companion.recorder import (
     RecorderConfig,
 )
 from companion.telemetry import TelemetryConfig, TelemetryPublisher
+from sim_harness.machine import machine
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -216,7 +216,7 @@ def main() -> None:
             "recorder": bench_recorder(tmp, args.ticks),
             "telemetry": bench_telemetry(args.ticks),
             "crash": bench_crash_loss(tmp, args.kills),
-            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+            "machine": machine(),
         }
     for section, values in results.items():
         for key, value in values.items():

@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from cnn_latency import RESULTS, machine, write_report
+from cnn_latency import RESULTS, write_report
 from low_pass_tuning import training_seeds
 
 from companion.flocking import (
@@ -50,6 +50,7 @@ from companion.flocking import (
     reynolds_from_offsets,
 )
 from sim_harness.experiments.suites import EXPERIMENTS
+from sim_harness.machine import machine
 from sim_harness.sim.controllers import SENSE_NEIGHBOURS, Observation, TeacherController
 from sim_harness.sim.rollout import fly, summarize
 from sim_harness.sim.scenarios import build_scenario

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import signal
 import socket
 import subprocess
@@ -42,6 +41,7 @@ from companion.model_file import base_metadata, save_model
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
 from sim_harness.hil.camera_emulator import CameraEmulator
 from sim_harness.hil.px4_logic import Px4Mode
+from sim_harness.machine import machine
 
 REPO = Path(__file__).resolve().parents[1]
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -247,11 +247,9 @@ def main() -> None:
             d["px4"].stop()
 
     results: dict[str, Any] = {
-        "machine": {
-            "platform": platform.platform(),
-            "cpus": os.cpu_count(),
-            "load_average_1min_before_after": [load_before, round(os.getloadavg()[0], 2)],
-        },
+        "machine": machine(
+            load_average_1min_before_after=[load_before, round(os.getloadavg()[0], 2)]
+        ),
         "policy": {
             "architecture": (
                 "ResNet-8 (DroNet-like), TorchScript scripted + frozen, channels_last"

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import tempfile
 import time
@@ -25,6 +24,7 @@ from pathlib import Path
 
 from sim_harness.dataset.generate import generate
 from sim_harness.dataset.spec import COMPRESSIONS, DatasetSpec
+from sim_harness.machine import machine
 from sim_harness.sim.renderers import RENDERERS
 
 RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
@@ -76,11 +76,7 @@ def main() -> None:
         rows.append(measure(cores, args.samples, args.repeats, args.renderer, args.compression))
     result = {
         "benchmark": "dataset_throughput",
-        "machine": {
-            "cpus": cores,
-            "python": platform.python_version(),
-            "platform": platform.platform(),
-        },
+        "machine": machine(),
         "n_agents": 9,
         "renderer": args.renderer,
         "compression": args.compression,

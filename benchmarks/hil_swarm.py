@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import tempfile
 import time
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 
 from sim_harness.hil.swarm import HilConfig, HilSwarm
 from sim_harness.learning.shipped import PROJECT_ROOT, SHIPPED_MODEL_PATH
+from sim_harness.machine import machine
 from sim_harness.sim.renderers import add_renderer_option
 from sim_harness.sim.rollout import summarize
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
@@ -144,7 +144,7 @@ def main() -> None:
     args.out = args.out or PROJECT_ROOT / f"benchmarks/results/hil_swarm_{args.renderer}.json"
     tmp = Path(tempfile.mkdtemp(prefix="hil-bench-"))
     results: dict[str, Any] = {
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+        "machine": machine(),
         "command": "python benchmarks/hil_swarm.py "
         + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out"),
     }

@@ -23,7 +23,6 @@ os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"  # nodes started here bind
 
 import argparse
 import json
-import platform
 import statistics
 import tempfile
 import time
@@ -37,6 +36,7 @@ from sim_harness.dataset.spec import SPLITS, DatasetSpec
 from sim_harness.dataset.store import run_path
 from sim_harness.experiments.runner import run_suite
 from sim_harness.experiments.suites import SuiteConfig
+from sim_harness.machine import machine
 from sim_harness.sim.executor import ClusterChoice
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -163,11 +163,7 @@ def main() -> None:
     result = {
         "benchmark": "ray_scaling",
         "ray_local_start_s": round(ray_start_s(cpus), 2),
-        "machine": {
-            "cpus": cpus,
-            "python": platform.python_version(),
-            "platform": platform.platform(),
-        },
+        "machine": machine(),
         "load_average_1m_after": os.getloadavg()[0],
         "dataset": {
             "train_samples": args.samples,

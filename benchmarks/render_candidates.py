@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import statistics
 import sys
 import time
@@ -35,6 +34,7 @@ import numpy as np
 
 from companion.camera.layout import FACE_SIZE_PX, FACES
 from companion.frames import quat_from_euler_zyx, quat_to_rotmat
+from sim_harness.machine import machine
 from sim_harness.sim.drone_solid import DroneSolid
 from sim_harness.sim.quad_body import QuadGeometry, quad_mesh
 from sim_harness.sim.raycast import TINYRENDERER_SAMPLE_PX, RaycastRenderer, pixel_rays_camera
@@ -191,12 +191,7 @@ def main() -> None:
         rows[str(n)] = row
         print(n, json.dumps(row, indent=1), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(
-        json.dumps(
-            {"machine": platform.processor() or platform.machine(), "agents": rows}, indent=2
-        )
-        + "\n"
-    )
+    args.out.write_text(json.dumps({"machine": machine(), "agents": rows}, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from companion.frames import quat_from_euler_zyx, quat_to_rotmat
+from sim_harness.machine import machine
 from sim_harness.sim.raycast import RaycastRenderer
 from sim_harness.sim.render import PyBulletRenderer, Renderer, camera_poses
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
@@ -85,13 +85,7 @@ def main() -> None:
         )
     result = {
         "benchmark": "render_cost",
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "numpy": np.__version__,
-            "load_average_1m": {"before": load_before, "after": os.getloadavg()[0]},
-        },
+        "machine": machine(load_average_1m={"before": load_before, "after": os.getloadavg()[0]}),
         "results": rows,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -32,13 +32,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from cnn_latency import RESULTS, machine, write_report
+from cnn_latency import RESULTS, write_report
 from command_shrinkage import policy_answers
 
 from companion.flocking import COINCIDENT_M, FlockingParams
 from companion.frames import quat_to_rotmat
 from sim_harness.dataset.spec import DatasetSpec
 from sim_harness.dataset.store import open_dataset
+from sim_harness.machine import machine
 
 PARTS = ("sep_near", "sep_far", "coh")
 CROWDED_M = 1.5

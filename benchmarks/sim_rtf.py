@@ -12,13 +12,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 from pathlib import Path
 
-import numpy as np
-
+from sim_harness.machine import machine
 from sim_harness.sim.controllers import TeacherController
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
@@ -71,12 +68,7 @@ def main() -> None:
         "benchmark": "sim_rtf",
         "physics_hz": rates.physics_hz,
         "control_hz": rates.control_hz,
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "numpy": np.__version__,
-        },
+        "machine": machine(),
         "results": results,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -34,11 +34,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from cnn_latency import RESULTS, machine, write_report
+from cnn_latency import RESULTS, write_report
 from low_pass_tuning import seed_ranges
 
 from companion.flocking import FlockingParams, cap_speed, command_from_offsets
 from sim_harness.experiments.suites import EXPERIMENTS
+from sim_harness.machine import machine
 from sim_harness.sim.controllers import Observation, TeacherController
 from sim_harness.sim.rollout import fly, summarize
 from sim_harness.sim.scenarios import build_scenario

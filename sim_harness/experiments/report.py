@@ -14,16 +14,11 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import os
-import platform
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
-
-import torch
 
 from sim_harness.experiments import stats as suite_stats
 from sim_harness.experiments.bar import BarCheck, bar_checks
@@ -36,6 +31,7 @@ from sim_harness.experiments.suites import (
     LABELS,
     SuiteConfig,
 )
+from sim_harness.machine import machine
 from sim_harness.sim.plots import BANDS_KEY, TRAJECTORY_KEY, save_comparison_figure
 from sim_harness.sim.rollout import FlightLog
 
@@ -356,26 +352,6 @@ def write_report(
     report.write_text("\n".join(lines).rstrip() + "\n")
     _write_json(result, out_dir / "results.json", tables, checks, where)
     return report
-
-
-def machine() -> dict[str, Any]:
-    """What flew the suite. The CNN's flights repeat exactly on one machine, but not across
-    machines: another CPU's kernels (or another install's libraries) round differently, about
-    1e-6 m/s, and a flock amplifies that (round 45's opposing seed 1012: closest pair 1.37 m in
-    one session, 1.34 m in a later one, the same file, code and torch), so a figure says where
-    it was measured."""
-    cpu = platform.processor() or platform.machine()
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    return {
-        "cpu": cpu,
-        "cpus": os.cpu_count(),
-        "platform": platform.platform(),
-        "torch": torch.__version__,
-    }
 
 
 def _write_json(
