@@ -30,17 +30,9 @@ from companion.health import HealthState
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.px4_logic import Px4Mode
 
-DO_SET_MODE = 176
-GUARD_S = 20.0
+from .daemon_rig import DO_SET_MODE, GUARD_S, until
+
 BODY_CMD_FLU = (1.0, 0.0, 0.0)
-
-
-async def until(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    start = time.monotonic()
-    while not condition():
-        if time.monotonic() - start > timeout_s:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        await asyncio.sleep(0.01)
 
 
 def entered(daemon: Any, state: HealthState, since: int) -> bool:

@@ -29,13 +29,9 @@ from companion.flight_log import TOPIC_CAMERAS, TOPIC_HEALTH, LogReader, summari
 from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.camera_emulator import CameraEmulator
 
+from .daemon_rig import daemon_log, free_tcp_port
+
 GUARD_S = 30.0
-
-
-def free_tcp_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def garbage(blocks: int) -> bytes:
@@ -78,11 +74,6 @@ async def until(condition: Callable[[], bool], what: str) -> None:
         if time.monotonic() - start > GUARD_S:
             pytest.fail(f"timed out after {GUARD_S} s waiting for {what}")
         await asyncio.sleep(0.02)
-
-
-def flight_log(tmp_path: Path) -> Path:
-    (log,) = sorted((tmp_path / "flights").glob("flight_d1_*.mcap"))
-    return log
 
 
 def test_camera_errors_battery_and_gps_reach_the_ground_and_the_log(
@@ -139,7 +130,7 @@ def test_camera_errors_battery_and_gps_reach_the_ground_and_the_log(
     finally:
         monitor.close()
 
-    log = flight_log(tmp_path)
+    log = daemon_log(tmp_path)
     records = [m.json() for m in LogReader(log).messages() if m.topic == TOPIC_CAMERAS]
     assert records and records[-1]["left"]["bad_headers"] == 12
     assert records[-1]["right"]["bad_payloads"] >= 3
@@ -197,7 +188,7 @@ def test_telemetry_that_cannot_listen_does_not_ground_the_drone(
     finally:
         holder.close()
     events = [
-        m.json() for m in LogReader(flight_log(tmp_path)).messages() if m.topic == TOPIC_HEALTH
+        m.json() for m in LogReader(daemon_log(tmp_path)).messages() if m.topic == TOPIC_HEALTH
     ]
     names = [event["event"] for event in events]
     assert names.count("telemetry unavailable") == 1

@@ -31,7 +31,8 @@ from sim_harness.hil.camera_emulator import CameraEmulator
 from sim_harness.hil.drone import free_tcp_port, toml_text
 from sim_harness.hil.px4_logic import Px4Mode
 
-REPO = Path(__file__).resolve().parents[2]
+from .daemon_rig import REPO, daemon_log
+
 GUARD_S = 60.0  # liveness bound on a loaded machine; met in seconds normally
 
 
@@ -123,11 +124,6 @@ class Child:
         return "".join(self.lines)
 
 
-def flight_log(tmp_path: Path) -> Path:
-    (log,) = sorted((tmp_path / "flights").glob("flight_d1_*.mcap"))
-    return log
-
-
 def test_sigterm_while_the_model_hangs_holds_and_exits_0(
     tmp_path: Path, cameras: CameraEmulator, px4: AutopilotEmulator
 ) -> None:
@@ -147,7 +143,7 @@ def test_sigterm_while_the_model_hangs_holds_and_exits_0(
     assert code == 0, child.output
     assert "abandoned" in child.output  # the hung inference was left behind, said so
     assert px4.mode is Px4Mode.HOLD, child.output
-    summary = summarize_log(flight_log(tmp_path))
+    summary = summarize_log(daemon_log(tmp_path))
     assert summary["complete"], summary
     events = [(e["event"], e.get("detail")) for e in summary["health_events"]]
     assert ("stopped", "SIGTERM") in events, events
@@ -209,7 +205,7 @@ def test_a_refused_model_exits_2_with_one_line_and_the_log_says_why(
     assert len(errors) == 1 and reason in errors[0], done.stderr
     assert "Traceback" not in done.stderr, done.stderr
     assert not px4.setpoints() and px4.mode is Px4Mode.POSCTL  # nothing was commanded
-    summary = summarize_log(flight_log(tmp_path))
+    summary = summarize_log(daemon_log(tmp_path))
     assert summary["complete"], summary
     events = {e["event"]: str(e.get("detail")) for e in summary["health_events"]}
     assert reason in events["policy refused"], events
