@@ -27,8 +27,8 @@ from companion.camera.layout import FACE_NAMES
 from companion.camera.rig import Rig
 from companion.camera.serial_link import links_from_config, run_links
 from companion.camera.slot import CameraFrame
+from sim_harness.experiments.machine import machine
 from sim_harness.hil.camera_emulator import CameraEmulator
-from sim_harness.machine import machine
 
 RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
 

@@ -29,9 +29,9 @@ from command_shrinkage import policy_answers
 
 from sim_harness.dataset.spec import DatasetSpec
 from sim_harness.dataset.store import open_dataset
+from sim_harness.experiments.machine import machine
 from sim_harness.learning.evaluate import regression_metrics
 from sim_harness.learning.relabel import cautious_targets
-from sim_harness.machine import machine
 
 
 def r2_per_axis(pred: np.ndarray, target: np.ndarray) -> dict[str, float | None]:

@@ -31,7 +31,7 @@ from command_shrinkage import policy_answers, print_table, shrinkage_table
 
 from companion.frames import quat_to_rotmat
 from sim_harness.dataset.store import open_dataset
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 
 BINS_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.6, float("inf"))
 FACENESS_BINS = (0.5, 0.7, 0.8, 0.9, 1.01)

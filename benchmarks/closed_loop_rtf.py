@@ -22,13 +22,13 @@ import statistics
 from pathlib import Path
 from typing import Any
 
+from sim_harness.experiments.machine import machine
 from sim_harness.experiments.vision_controller import (
     VisionControlConfig,
     VisionController,
     load_policy,
 )
 from sim_harness.learning.shipped import SHIPPED_MODEL_PATH
-from sim_harness.machine import machine
 from sim_harness.sim.renderers import RENDERERS, make_renderer
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario

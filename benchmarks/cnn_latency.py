@@ -39,9 +39,9 @@ import numpy as np
 import torch
 
 from companion.model_file import enable_graph_fusion, graph_is_fused
+from sim_harness.experiments.machine import machine
 from sim_harness.learning.export import export_policy, load_eager_model
 from sim_harness.learning.model import DroNet, build_model
-from sim_harness.machine import machine
 
 RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's
 

@@ -28,8 +28,8 @@ import numpy as np
 from cnn_latency import RESULTS, write_report
 
 from sim_harness.dataset.store import open_dataset
+from sim_harness.experiments.machine import machine
 from sim_harness.experiments.vision_controller import load_policy
-from sim_harness.machine import machine
 
 BINS_MPS = (0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0, float("inf"))
 BATCH = 256

@@ -47,7 +47,7 @@ from companion.recorder import (
     RecorderConfig,
 )
 from companion.telemetry import TelemetryConfig, TelemetryPublisher
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 
 REPO = Path(__file__).resolve().parents[1]
 

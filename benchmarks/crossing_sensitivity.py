@@ -49,8 +49,8 @@ from companion.flocking import (
     migration_velocity,
     reynolds_from_offsets,
 )
+from sim_harness.experiments.machine import machine
 from sim_harness.experiments.suites import EXPERIMENTS
-from sim_harness.machine import machine
 from sim_harness.sim.controllers import SENSE_NEIGHBOURS, Observation, TeacherController
 from sim_harness.sim.rollout import fly, summarize
 from sim_harness.sim.scenarios import build_scenario

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from sim_harness.dataset.generate import generate
 from sim_harness.dataset.spec import COMPRESSIONS, DatasetSpec
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 from sim_harness.sim.renderers import RENDERERS
 
 RESULTS = Path(__file__).resolve().parent / "results"  # not the working folder's

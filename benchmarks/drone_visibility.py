@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from cnn_latency import RESULTS, write_report
 
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 from sim_harness.sim.renderers import RENDERERS, make_renderer
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario
 from sim_harness.sim.world import World

@@ -29,8 +29,8 @@ import numpy as np
 from cnn_latency import RESULTS, write_report
 
 from companion.flocking import FlockingParams, flocking_command
+from sim_harness.experiments.machine import machine
 from sim_harness.experiments.vision_controller import load_policy
-from sim_harness.machine import machine
 from sim_harness.sim.renderers import add_renderer_option, make_renderer, renderer_of_model
 from sim_harness.sim.world import World
 

@@ -36,10 +36,10 @@ from cnn_latency import RESULTS, write_report
 
 from companion.flocking import FlockingParams, flocking_command
 from sim_harness.dataset.store import open_dataset
+from sim_harness.experiments.machine import machine
 from sim_harness.experiments.vision_controller import load_policy
 from sim_harness.learning.evaluate import regression_metrics
 from sim_harness.learning.model import AXES
-from sim_harness.machine import machine
 from sim_harness.sim.renderers import make_renderer
 from sim_harness.sim.scene import SceneSpec, random_scene
 from sim_harness.sim.world import World

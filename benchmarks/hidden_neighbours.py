@@ -35,7 +35,7 @@ from cnn_latency import RESULTS, write_report
 from low_pass_tuning import training_seeds
 
 from companion.flocking import FlockingParams, pairwise_offsets, reynolds_from_offsets
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 from sim_harness.sim.controllers import TeacherController
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario

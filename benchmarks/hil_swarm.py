@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from sim_harness.experiments.machine import machine
 from sim_harness.hil.swarm import HilConfig, HilSwarm
 from sim_harness.learning.shipped import PROJECT_ROOT, SHIPPED_MODEL_PATH
-from sim_harness.machine import machine
 from sim_harness.sim.renderers import add_renderer_option
 from sim_harness.sim.rollout import summarize
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario

@@ -35,10 +35,10 @@ from cnn_latency import RESULTS, write_report
 from low_pass_tuning import training_seeds
 
 from companion.flocking import flocking_command
+from sim_harness.experiments.machine import machine
 from sim_harness.experiments.runner import Job, fly_job
 from sim_harness.experiments.suites import SuiteConfig
 from sim_harness.experiments.vision_controller import load_policy
-from sim_harness.machine import machine
 from sim_harness.sim.renderers import add_renderer_option, renderer_of_model
 from sim_harness.sim.rollout import FlightLog
 

@@ -34,9 +34,9 @@ from typing import Any
 from sim_harness.dataset.generate import generate
 from sim_harness.dataset.spec import SPLITS, DatasetSpec
 from sim_harness.dataset.store import run_path
+from sim_harness.experiments.machine import machine
 from sim_harness.experiments.runner import run_suite
 from sim_harness.experiments.suites import SuiteConfig
-from sim_harness.machine import machine
 from sim_harness.sim.executor import ClusterChoice
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -34,7 +34,7 @@ import numpy as np
 
 from companion.camera.layout import FACE_SIZE_PX, FACES
 from companion.frames import quat_from_euler_zyx, quat_to_rotmat
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 from sim_harness.sim.drone_solid import DroneSolid
 from sim_harness.sim.quad_body import QuadGeometry, quad_mesh
 from sim_harness.sim.raycast import TINYRENDERER_SAMPLE_PX, RaycastRenderer, pixel_rays_camera

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from companion.frames import quat_from_euler_zyx, quat_to_rotmat
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 from sim_harness.sim.raycast import RaycastRenderer
 from sim_harness.sim.render import PyBulletRenderer, Renderer, camera_poses
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario

@@ -39,7 +39,7 @@ from companion.flocking import COINCIDENT_M, FlockingParams
 from companion.frames import quat_to_rotmat
 from sim_harness.dataset.spec import DatasetSpec
 from sim_harness.dataset.store import open_dataset
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 
 PARTS = ("sep_near", "sep_far", "coh")
 CROWDED_M = 1.5

@@ -15,7 +15,7 @@ import json
 import statistics
 from pathlib import Path
 
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 from sim_harness.sim.controllers import TeacherController
 from sim_harness.sim.rollout import fly
 from sim_harness.sim.scenarios import ScenarioConfig, build_scenario

@@ -38,8 +38,8 @@ from cnn_latency import RESULTS, write_report
 from low_pass_tuning import seed_ranges
 
 from companion.flocking import FlockingParams, cap_speed, command_from_offsets
+from sim_harness.experiments.machine import machine
 from sim_harness.experiments.suites import EXPERIMENTS
-from sim_harness.machine import machine
 from sim_harness.sim.controllers import Observation, TeacherController
 from sim_harness.sim.rollout import fly, summarize
 from sim_harness.sim.scenarios import build_scenario

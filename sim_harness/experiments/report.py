@@ -23,6 +23,7 @@ from typing import Any
 from sim_harness.experiments import stats as suite_stats
 from sim_harness.experiments.bar import BarCheck, bar_checks
 from sim_harness.experiments.gradcam_strip import save_gradcam_strip
+from sim_harness.experiments.machine import machine
 from sim_harness.experiments.runner import RunRecord, SuiteResult
 from sim_harness.experiments.suites import (
     CONTROLLERS,
@@ -31,7 +32,6 @@ from sim_harness.experiments.suites import (
     LABELS,
     SuiteConfig,
 )
-from sim_harness.machine import machine
 from sim_harness.sim.plots import BANDS_KEY, TRAJECTORY_KEY, save_comparison_figure
 from sim_harness.sim.rollout import FlightLog
 

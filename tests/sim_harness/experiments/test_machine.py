@@ -8,7 +8,7 @@ import os
 import numpy as np
 import torch
 
-from sim_harness.machine import machine
+from sim_harness.experiments.machine import machine
 
 
 def test_the_record_names_the_cpu_and_the_libraries_in_use() -> None:
