@@ -8,26 +8,14 @@ from __future__ import annotations
 import asyncio
 import subprocess
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-
-import pytest
 
 from companion.ground_engage import CONTROL_ACTIONS
 from companion.health import HealthState
 from sim_harness.hil.px4_logic import Px4Mode
 
-GUARD_S = 20.0
-
-
-async def until(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    start = time.monotonic()
-    while not condition():
-        if time.monotonic() - start > timeout_s:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        await asyncio.sleep(0.01)
+from ..daemon_rig import GUARD_S, until
 
 
 def drone_companion(sshd: Any, control_socket_path: str) -> Path:
