@@ -61,7 +61,9 @@ def logged(run: Any, text: str, timeout_s: float = ENGAGE_GUARD_S) -> None:
 def mean_velocity(gcs: GroundStation, seconds: float) -> tuple[float, float]:
     """Mean NED (north, east) velocity (m/s) over the last `seconds` of LOCAL_POSITION_NED."""
     samples = gcs.positions_since(time.monotonic() - seconds)
-    assert len(samples) > 10
+    # PX4 streams it at about 30-50 Hz; a loaded machine delivers fewer (10 in 0.3 s seen beside
+    # two busy loops). Five still make a mean, and fewer means the link itself stalled.
+    assert len(samples) >= 5, f"{len(samples)} LOCAL_POSITION_NED in the last {seconds} s"
     return (
         sum(s.vx for s in samples) / len(samples),
         sum(s.vy for s in samples) / len(samples),

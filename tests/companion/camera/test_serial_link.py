@@ -280,9 +280,12 @@ def test_garbage_on_the_line_shows_in_counters_and_last_error_and_fps_is_measure
         assert after.counters.corrupted_headers - before.counters.corrupted_headers == 12
         assert after.counters.dropped_bytes - before.counters.dropped_bytes == len(junk)
         # e.g. "bad header x12, 504 bytes dropped in the last 1.0 s" (a window boundary may
-        # split the burst in two: the counts are the counters' business, the words the operator's)
+        # split the burst in two: the counts are the counters' business, the words the operator's;
+        # on a loaded machine the emulator may drop a frame in the same window, which the line
+        # then also names: "bad header x12, sequence gap x1, 504 bytes dropped ...")
         assert re.fullmatch(
-            r"bad header x\d+, \d+ bytes dropped in the last \d+\.\d s", after.last_error or ""
+            r"bad header x\d+(, [a-z ]+ x\d+)*, \d+ bytes dropped in the last \d+\.\d s",
+            after.last_error or "",
         )
         assert after.last_error_age_s is not None and 0.0 <= after.last_error_age_s < TIMEOUT_S
         assert after.connected  # garbage is reported, not a reason to drop the camera
