@@ -81,6 +81,8 @@ def load_runs(path: Path) -> list[dict[str, Any]]:
     for i, run in enumerate(runs):
         if not isinstance(run, dict) or any(k not in run for k in needed):
             raise ReportError(f"{file}: runs[{i}] lacks one of {', '.join(needed)}")
+        if not isinstance(run["d_min_m"], int | float):
+            raise ReportError(f"{file}: runs[{i}].d_min_m is {run['d_min_m']!r}, not a distance")
     return runs
 
 
@@ -191,6 +193,9 @@ def comparison_json(comparisons: list[ExperimentComparison]) -> list[dict[str, A
         for seed, pair in zip(item["seeds"], c.seeds, strict=True):
             seed["delta_m"] = pair.delta_m
         item["largest_delta"]["delta_m"] = c.largest_delta.delta_m
+        for key in ("order_a", "order_b"):  # one run has no standard error: null, not NaN
+            if item[key] is not None:
+                item[key] = [None if math.isnan(v) else v for v in item[key]]
         out.append(item)
     return out
 

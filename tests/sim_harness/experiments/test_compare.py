@@ -76,6 +76,9 @@ def test_an_unreadable_report_names_the_file_and_what_is_wrong(tmp_path) -> None
     bad.write_text(json.dumps({"runs": [{"experiment": "common", "seed": 1}]}))
     with pytest.raises(ReportError, match=r"runs\[0\] lacks one of"):
         load_runs(bad)
+    bad.write_text(json.dumps({"runs": [{**run("common", 1000, 1.0, 0.9), "d_min_m": None}]}))
+    with pytest.raises(ReportError, match=r"runs\[0\].d_min_m is None, not a distance"):
+        load_runs(bad)
     assert main(["compare", str(tmp_path / "missing"), str(bad)]) == 2
 
 
