@@ -252,7 +252,9 @@ def test_taken_port_is_not_fatal_run_retries_until_it_is_free() -> None:
             await pub.close()
         assert events[-1][:2] == ("telemetry up", "info")
         detail = events[-1][2]
-        assert isinstance(detail, dict) and detail["attempts"] >= 5
+        # The count rises as an attempt starts: the 4th may still have been binding (in its
+        # thread) when the port was freed, and succeed; a loaded machine showed exactly that.
+        assert isinstance(detail, dict) and detail["attempts"] >= 4
 
     try:
         asyncio.run(main())
