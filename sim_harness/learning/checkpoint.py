@@ -20,6 +20,7 @@ checkpoint.
 
 from __future__ import annotations
 
+import logging
 import os
 import pickle
 from pathlib import Path
@@ -33,6 +34,8 @@ from sim_harness.learning.model import DroNet, build_from_config
 CHECKPOINT_FORMAT = "vision-swarm-checkpoint/1"
 LAST_NAME = "last.ckpt"
 BEST_NAME = "best.ckpt"
+
+log = logging.getLogger(__name__)
 
 
 class CheckpointError(SimError):
@@ -161,3 +164,35 @@ def restore_rng_state(state: dict[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
     if state.get("cuda") is not None and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def resume_into(
+    path: Path,
+    manifest: dict[str, Any],
+    model: DroNet,
+    optimizer: torch.optim.Optimizer,
+    scheduler: torch.optim.lr_scheduler.ReduceLROnPlateau,
+    device: torch.device,
+) -> dict[str, Any]:
+    """Load run checkpoint `path` into model, optimizer, scheduler and the RNGs; return its state.
+
+    Refused with a `CheckpointError` when the file is missing, or was trained on another dataset
+    (`manifest["id"]`) or another architecture.
+    """
+    if not path.exists():
+        raise CheckpointError(f"cannot resume: {path} does not exist")
+    state = load_checkpoint(path, map_location=device)
+    if state["dataset"]["id"] != manifest["id"]:
+        raise CheckpointError(
+            f"cannot resume: {path} was trained on dataset {state['dataset']['id']}, "
+            f"not {manifest['id']}"
+        )
+    recorded = state["model_config"].get("arch", "dronet")
+    if recorded != model.arch:  # the weights would load: the state dicts are alike
+        raise CheckpointError(f"cannot resume: {path} trains arch {recorded}, not {model.arch}")
+    model.load_state_dict(state["model"])
+    load_optimizer_state(optimizer, model, state["optimizer"])
+    scheduler.load_state_dict(state["scheduler"])
+    restore_rng_state(state["rng"])
+    log.info("resumed %s after epoch %d", path, state["epoch"])
+    return state

@@ -1,7 +1,7 @@
 """Learning-rate schedules of a training run (pure arithmetic; no torch, so the CLI can list them).
 
 - `plateau`: the paper's. The lr is multiplied by `lr_factor` once `lr_patience_epochs` epochs in
-  a row have not lowered the validation loss (`train.make_scheduler`).
+  a row have not lowered the validation loss (`optimization.make_scheduler`).
 - `cosine`: the lr falls batch by batch from its initial value to 0 along half a cosine over the
   run's `max_epochs`. A fine-tune of one or two epochs never meets a plateau, so at `plateau` it
   ends at its full lr, with SGD's noise still in the weights; `cosine` anneals it. A resumed run

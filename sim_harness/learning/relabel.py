@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from companion.errors import ConfigError
 from companion.flocking import FlockingParams, reynolds_from_offsets
 from companion.frames import quat_to_rotmat
+from sim_harness.learning.batches import JoinedSplit, SplitArrays, StackedImages
 from sim_harness.learning.flock_loss import flock_ids
 
 POSITION_COLUMNS = ("pos_world_enu", "q_world_body")
@@ -110,3 +111,13 @@ def cautious_targets(
             "other gains; relabel only data written by this project's generators"
         )
     return (stored + (separation_scale - 1.0) * sep_body).astype(np.float32)
+
+
+def relabelled(split: SplitArrays, separation_scale: float, what: str) -> JoinedSplit:
+    """`split` with the labels of the law whose separation gain is scaled by `separation_scale`
+    (its images shared, not copied); `what` names the split in an error."""
+    images = split.images
+    if not isinstance(images, StackedImages):
+        images = StackedImages([np.asarray(images)])
+    targets = cautious_targets(split.targets, split.meta, separation_scale, what=what)
+    return JoinedSplit(images=images, targets=targets, meta=split.meta)

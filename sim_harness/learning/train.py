@@ -28,10 +28,9 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -40,9 +39,7 @@ import torch
 
 from companion.errors import ConfigError
 from sim_harness.learning.batches import (
-    JoinedSplit,
     SplitArrays,
-    StackedImages,
     concat_splits,
     epoch_rows,
     load_batch,
@@ -54,11 +51,8 @@ from sim_harness.learning.batches import (
 from sim_harness.learning.checkpoint import (
     BEST_NAME,
     LAST_NAME,
-    CheckpointError,
-    load_checkpoint,
-    load_optimizer_state,
     optimizer_state,
-    restore_rng_state,
+    resume_into,
     rng_state,
     save_checkpoint,
 )
@@ -72,9 +66,9 @@ from sim_harness.learning.flock_loss import (
     flock_term,
     world_rotations,
 )
-from sim_harness.learning.lr_schedule import cosine_lr
-from sim_harness.learning.model import DroNet, build_model, parameter_groups
-from sim_harness.learning.relabel import cautious_targets
+from sim_harness.learning.model import DroNet, build_model
+from sim_harness.learning.optimization import Plateau, cosine_lr_at, make_optimizer, make_scheduler
+from sim_harness.learning.relabel import relabelled
 from sim_harness.learning.sample_weights import SampleWeighting
 from sim_harness.learning.symmetry import augment_with_views
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
@@ -98,12 +92,6 @@ def validation_loss(
     """`velocity_loss` over a whole split, model in eval mode."""
     pred = predict(model, split.images, batch_size, device)
     return float(np.mean((pred - split.targets) ** 2, dtype=np.float64))
-
-
-def _cosine_lr_at(config: TrainConfig, epoch: int, n_batches: int) -> Callable[[int], float]:
-    """The lr of each batch of `epoch` (1-based) on the run's cosine curve."""
-    done, run = (epoch - 1) * n_batches, config.max_epochs * n_batches
-    return lambda step: cosine_lr(config.lr, done + step, run)
 
 
 def _train_epoch(
@@ -236,68 +224,6 @@ def train(config: TrainConfig) -> TrainResult:
     return train_on(config, dataset.manifest, train_split, val_split)
 
 
-def relabelled(split: SplitArrays, separation_scale: float, what: str) -> JoinedSplit:
-    """`split` with the labels of the law whose separation gain is scaled (`learning.relabel`)."""
-    images = split.images
-    if not isinstance(images, StackedImages):
-        images = StackedImages([np.asarray(images)])
-    targets = cautious_targets(split.targets, split.meta, separation_scale, what=what)
-    return JoinedSplit(images=images, targets=targets, meta=split.meta)
-
-
-def make_optimizer(model: DroNet, config: TrainConfig) -> torch.optim.SGD:
-    """SGD with momentum; weight decay on the conv and linear weights only."""
-    return torch.optim.SGD(
-        parameter_groups(model, config.weight_decay),
-        lr=config.lr,
-        momentum=config.momentum,
-    )
-
-
-def make_scheduler(
-    optimizer: torch.optim.Optimizer, config: TrainConfig
-) -> torch.optim.lr_scheduler.ReduceLROnPlateau:
-    """lr x `lr_factor` on the `lr_patience_epochs`-th consecutive epoch without improvement."""
-    return torch.optim.lr_scheduler.ReduceLROnPlateau(
-        optimizer,
-        mode="min",
-        factor=config.lr_factor,
-        patience=config.lr_patience_epochs - 1,  # torch acts on the (patience + 1)-th bad epoch
-        threshold=0.0,
-    )
-
-
-@dataclass
-class Plateau:
-    """Early-stopping bookkeeping; `stop` once more than `patience_epochs` epochs in a row have
-    not lowered the validation loss (an equal loss is no improvement)."""
-
-    patience_epochs: int
-    best_val_loss: float = math.inf
-    best_epoch: int = 0
-    epochs_since_best: int = 0
-
-    def update(self, epoch: int, val_loss: float) -> bool:
-        """Record one epoch's validation loss; True when it is a new best."""
-        improved = val_loss < self.best_val_loss
-        if improved:
-            self.best_val_loss, self.best_epoch, self.epochs_since_best = val_loss, epoch, 0
-        else:
-            self.epochs_since_best += 1
-        return improved
-
-    @property
-    def stop(self) -> bool:
-        return self.epochs_since_best > self.patience_epochs
-
-    def as_state(self) -> dict[str, Any]:
-        return {
-            "best_val_loss": self.best_val_loss,
-            "best_epoch": self.best_epoch,
-            "epochs_since_best": self.epochs_since_best,
-        }
-
-
 def train_on(
     config: TrainConfig,
     manifest: dict[str, Any],
@@ -352,10 +278,8 @@ def train_on(
         },
     }
     if config.resume:
-        state = _resume(out / LAST_NAME, manifest, model, optimizer, scheduler, device)
-        plateau.best_val_loss = state["best_val_loss"]
-        plateau.best_epoch = state["best_epoch"]
-        plateau.epochs_since_best = state["epochs_since_best"]
+        state = resume_into(out / LAST_NAME, manifest, model, optimizer, scheduler, device)
+        plateau.restore(state)
     else:
         if config.init_from is not None:
             _init_weights(model, config.init_from, state)
@@ -374,7 +298,7 @@ def train_on(
             else list(flock_batches(flock_id, rows, config.batch_size, config.seed, epoch))
         )
         cosine = config.lr_schedule == "cosine"
-        lr_at = _cosine_lr_at(config, epoch, len(batches)) if cosine else None
+        lr_at = cosine_lr_at(config, epoch, len(batches)) if cosine else None
         train_loss, samples_per_s, clipped = _train_epoch(
             model,
             optimizer,
@@ -446,34 +370,6 @@ def train_on(
         wall_time_s=time.perf_counter() - run_start,
         history=history,
     )
-
-
-def _resume(
-    path: Path,
-    manifest: dict[str, Any],
-    model: DroNet,
-    optimizer: torch.optim.Optimizer,
-    scheduler: torch.optim.lr_scheduler.ReduceLROnPlateau,
-    device: torch.device,
-) -> dict[str, Any]:
-    """Load `path` into model, optimizer, scheduler and RNG; return the checkpoint's state."""
-    if not path.exists():
-        raise CheckpointError(f"cannot resume: {path} does not exist")
-    state = load_checkpoint(path, map_location=device)
-    if state["dataset"]["id"] != manifest["id"]:
-        raise CheckpointError(
-            f"cannot resume: {path} was trained on dataset {state['dataset']['id']}, "
-            f"not {manifest['id']}"
-        )
-    recorded = state["model_config"].get("arch", "dronet")
-    if recorded != model.arch:  # the weights would load: the state dicts are alike
-        raise CheckpointError(f"cannot resume: {path} trains arch {recorded}, not {model.arch}")
-    model.load_state_dict(state["model"])
-    load_optimizer_state(optimizer, model, state["optimizer"])
-    scheduler.load_state_dict(state["scheduler"])
-    restore_rng_state(state["rng"])
-    log.info("resumed %s after epoch %d", path, state["epoch"])
-    return state
 
 
 def _init_weights(model: DroNet, source: Path, state: dict[str, Any]) -> None:

@@ -30,6 +30,7 @@ from sim_harness.learning.checkpoint import (
 )
 from sim_harness.learning.lr_schedule import cosine_lr
 from sim_harness.learning.model import build_model
+from sim_harness.learning.optimization import Plateau, make_optimizer, make_scheduler
 from sim_harness.learning.sample_weights import (
     SampleWeighting,
     near_weights,
@@ -37,15 +38,7 @@ from sim_harness.learning.sample_weights import (
     speed_weights,
     weighted_velocity_loss,
 )
-from sim_harness.learning.train import (
-    Plateau,
-    TrainConfig,
-    make_optimizer,
-    make_scheduler,
-    train,
-    train_on,
-    velocity_loss,
-)
+from sim_harness.learning.train import TrainConfig, train, train_on, velocity_loss
 
 
 def quick(dataset, out, **overrides) -> TrainConfig:
