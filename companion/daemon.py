@@ -13,6 +13,7 @@ One asyncio program (`Daemon.run`), tasks under a TaskGroup:
      policy's worker thread) and wait for it at most `inference_budget_s` (a slower result is used
      by a later tick);
   2. control law on the latest valid policy output (attitude at capture, current position);
+     steps 1 and 2 are `companion.daemon_pilot`;
   3. `HealthMonitor.step` (companion.health) decides: fly, hover, engage or stream (who may
      engage and when: `companion.daemon_engage`), failsafe, release;
   4. the setpoint goes to the autopilot; then the side outputs (MCAP record, telemetry, sd_notify).
@@ -44,18 +45,18 @@ from typing import Any, TypeVar
 from companion import daemon_reports as reports
 from companion import frames
 from companion.autopilot_types import Autopilot, OffboardState
-from companion.camera.rig import Rig, RigImage, RigSnapshot
+from companion.camera.rig import Rig
 from companion.camera.serial_link import SerialCameraLink, links_from_config, run_links
 from companion.camera.slot import FrameSource
 from companion.config import CompanionConfig
-from companion.control import ControlLaw, ControlOutput
+from companion.control import ControlOutput
 from companion.control_channel import ControlChannel, ControlError
 from companion.daemon_commands import Commander
 from companion.daemon_engage import Engagement
 from companion.daemon_loop import fixed_rate, frame_locked
 from companion.daemon_outputs import Outputs, TickTimes
+from companion.daemon_pilot import Pilot
 from companion.errors import CompanionError, ModelError
-from companion.geo import MigrationFromHome
 from companion.health import (
     Action,
     HealthConfig,
@@ -64,8 +65,8 @@ from companion.health import (
     HealthMonitor,
     HealthState,
 )
-from companion.policy import Policy, PolicyOutput
-from companion.pose_history import NAN4, AttitudeHistory, FloatArray, pose_enu
+from companion.policy import Policy
+from companion.pose_history import pose_enu
 from companion.recorder import TOPIC_POLICY, FlightRecorder
 from companion.sdnotify import SdNotifier
 from companion.telemetry import TelemetryPublisher
@@ -111,10 +112,8 @@ class Daemon:
             self._links = links_from_config(config.cameras, clock=clock)
             frame_sources = self._links
         self._rig = Rig(config.cameras, frame_sources)
-        self._law = ControlLaw(config.control, nominal_dt_s=d.period_s)
         health_config = HealthConfig(d.stale_hover_after_s, d.failsafe_after_s)
         self.health = HealthMonitor(health_config, start_s=clock())
-        self._attitudes = AttitudeHistory()
         recorder = FlightRecorder(
             config.recorder,
             drone_id=config.drone.id,
@@ -134,16 +133,7 @@ class Daemon:
         )
         self._stop = asyncio.Event()
         self._stop_reason = ""
-        self._infer_task: asyncio.Task[PolicyOutput] | None = None
-        self._infer_image: RigImage | None = None
-        self._good: tuple[PolicyOutput, RigImage] | None = None  # latest valid output, its image
-        self._last_ok = False
-        self._last_reason = "no policy output yet"
-        self._last_seqs: tuple[int, ...] | None = None
-        self._last_control_s: float | None = None  # the law's filter runs on real tick spacing
-        self._migration = MigrationFromHome(
-            config.control.migration_point_global, self.outputs.event
-        )
+        self._pilot = Pilot(config, self.outputs.event)
         self.engagement = Engagement(
             d.engage,
             requires_airborne=d.engage_requires_airborne,
@@ -295,7 +285,7 @@ class Daemon:
     async def _sample_attitude(self) -> None:
         while True:
             if self._autopilot is not None:
-                self._attitudes.add_from(self._autopilot.telemetry())
+                self._pilot.attitudes.add_from(self._autopilot.telemetry())
             await asyncio.sleep(ATTITUDE_SAMPLE_S)
 
     # -- the loop --------------------------------------------------------------------------
@@ -320,32 +310,24 @@ class Daemon:
         assert commander is not None and policy is not None
         self.ticks += 1
         snapshot = self._rig.snapshot(now_s)
-        new_image = snapshot if isinstance(snapshot, RigImage) else None
-        if new_image is not None and new_image.seqs == self._last_seqs:
-            new_image = None
-        if new_image is not None:
-            self._last_seqs = new_image.seqs
-            if self._infer_task is None:
-                self._infer_image = new_image
-                self._infer_task = asyncio.create_task(policy.infer(new_image.image))
-                budget_s = self.config.daemon.budget_s
-                await asyncio.wait({self._infer_task}, timeout=budget_s)
-        collected = self._collect_inference()
+        new_image, collected = await self._pilot.infer(snapshot, policy)
         fresh = collected[1] if collected is not None and collected[1] is new_image else None
 
         telemetry = commander.autopilot.telemetry()
-        self._attitudes.add_from(telemetry)
+        self._pilot.attitudes.add_from(telemetry)
         pos_enu, yaw_enu = pose_enu(telemetry, now_s, self.config.daemon.telemetry_max_age_s)
-        control, output_ok, problem = self._control(now_s, snapshot, pos_enu, yaw_enu)
+        control, output_ok, problem = self._pilot.control(
+            now_s, snapshot, telemetry, pos_enu, yaw_enu, policy
+        )
         heartbeat = self.engagement.heartbeat_problem(telemetry, now_s)
         if heartbeat and self.health.state is not HealthState.STARTING:
             control, output_ok, problem = None, False, heartbeat  # mode unknown: hover, failsafe
-        hover = lambda: self._law.hover(yaw_enu, "disengage")  # noqa: E731
+        hover = lambda: self._pilot.law.hover(yaw_enu, "disengage")  # noqa: E731
         gate = await self.engagement.before_step(commander, hover, telemetry, now_s, self.health)
         decision = self.health.step(
             HealthInputs(
                 now_s=now_s,
-                output_time_s=None if self._good is None else self._good[1].oldest_receive_time_s,
+                output_time_s=self._pilot.output_time_s,
                 output_ok=output_ok,
                 problem=problem,
                 offboard=commander.offboard_state,
@@ -371,63 +353,6 @@ class Daemon:
             decision, command, sent, times, telemetry, commander.offboard_state, counters
         )
 
-    def _collect_inference(self) -> tuple[PolicyOutput, RigImage] | None:
-        """Take a finished inference's result and its image; None if none finished."""
-        task, image = self._infer_task, self._infer_image
-        if task is None or not task.done() or image is None:
-            return None
-        self._infer_task = self._infer_image = None
-        output = task.result()
-        if output.ok:
-            self._good = (output, image)
-            self._last_ok, self._last_reason = True, ""
-        else:
-            self._last_ok, self._last_reason = False, f"policy output refused: {output.reason}"
-        return output, image
-
-    def _control(
-        self, now_s: float, snapshot: RigSnapshot, pos_enu: FloatArray, yaw_enu: float
-    ) -> tuple[ControlOutput | None, bool, str]:
-        """The control law on the latest valid output: (output or None, valid, why not)."""
-        if not self._last_ok or self._good is None:
-            return None, False, self._last_reason
-        migration, waiting = self._migration_point()
-        if waiting:
-            return None, False, waiting
-        output, image = self._good
-        max_age_s = self.config.daemon.telemetry_max_age_s
-        q_capture = self._attitudes.at(image.oldest_capture_time_s, max_age_s)
-        dt_s = None if self._last_control_s is None else now_s - self._last_control_s
-        self._last_control_s = now_s
-        assert self._commander is not None
-        home = self._commander.autopilot.telemetry().home  # the EKF origin until PX4 reports one
-        control = self._law.step(
-            output.vel_body_flu,
-            NAN4 if q_capture is None else q_capture,
-            pos_enu,
-            yaw_enu,
-            dt_s=dt_s if dt_s is not None and dt_s > 0.0 else None,
-            migration_point_world_enu=migration,
-            home_z_enu_m=0.0 if home is None else home.value.z_enu_m,  # the band's zero
-        )
-        if not control.ok:
-            return control, False, control.reason
-        return control, True, self._stale_problem(snapshot, now_s)
-
-    def _migration_point(self) -> tuple[FloatArray | None, str]:
-        """See `MigrationFromHome.resolve`; (None, "") when the point is not global."""
-        assert self._commander is not None
-        return self._migration.resolve(self._commander.autopilot.telemetry().home)
-
-    def _stale_problem(self, snapshot: RigSnapshot, now_s: float) -> str:
-        """Why no fresh output may be coming (shown only if the output turns out stale)."""
-        if not isinstance(snapshot, RigImage):
-            return f"no fresh rig image: {snapshot.reason}"
-        since = self._policy.in_flight_since if self._policy is not None else None
-        if since is not None:
-            return f"no fresh inference: the model has been running for {now_s - since:.3f} s"
-        return ""
-
     async def _act(
         self, decision: HealthDecision, control: ControlOutput | None, yaw_enu_rad: float
     ) -> tuple[ControlOutput | None, bool]:
@@ -438,10 +363,10 @@ class Daemon:
         if action is Action.FLY and control is not None:
             return control, await commander.send(control)
         if action in (Action.HOVER, Action.FLY):
-            command = self._law.hover(yaw_enu_rad, decision.reason)
+            command = self._pilot.law.hover(yaw_enu_rad, decision.reason)
             return command, await commander.send(command)
         if action is Action.STREAM:
-            command = self._law.hover(yaw_enu_rad, decision.reason)
+            command = self._pilot.law.hover(yaw_enu_rad, decision.reason)
             return command, await commander.stream(command)
         if action is Action.ENGAGE:
             finite = math.isfinite(yaw_enu_rad)
@@ -465,9 +390,8 @@ class Daemon:
         if commander is not None:
             max_age_s = self.config.daemon.telemetry_max_age_s
             _, yaw_enu = pose_enu(commander.autopilot.telemetry(), self._clock(), max_age_s)
-            await commander.safe_stop(self._law.hover(yaw_enu, "shutdown"))
-        if self._infer_task is not None:
-            self._infer_task.cancel()  # the model thread itself is abandoned by policy.close
+            await commander.safe_stop(self._pilot.law.hover(yaw_enu, "shutdown"))
+        self._pilot.cancel()  # the model thread itself is abandoned by policy.close
         self.outputs.event("stopped", "info", reason)
         if self._control_channel is not None:
             await self._control_channel.close()
