@@ -39,8 +39,9 @@ from torch import nn
 from companion.flight_log import TOPIC_POLICY, TOPIC_SETPOINT, LogReader
 from companion.model_file import base_metadata, save_model
 from sim_harness.experiments.machine import machine
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.camera_emulator import CameraEmulator
+from sim_harness.hil.emulator_config import EmulatorConfig, free_udp_port
 from sim_harness.hil.px4_logic import Px4Mode
 
 REPO = Path(__file__).resolve().parents[1]

@@ -284,7 +284,8 @@ class GcsPilot:
 
 
 def run_emulator() -> dict[str, Any]:
-    from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig
+    from sim_harness.hil.autopilot_emulator import AutopilotEmulator
+    from sim_harness.hil.emulator_config import EmulatorConfig
     from sim_harness.hil.px4_params import logic_config
 
     relay_port, client_port = free_port(), free_port()

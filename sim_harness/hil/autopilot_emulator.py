@@ -4,7 +4,7 @@ Wiring (the same as PX4 SITL): the client (MAVSDK) listens with `udpin://127.0.0
 emulator binds its own ephemeral port on 127.0.0.1 and sends everything to PORT, and MAVSDK
 answers to the address the datagrams came from. The emulator can therefore start before or after
 the client, and never needs to learn the client's address. Two listeners on one port do not fail
-on Linux, so the harness must hand out distinct ports (`free_udp_port`).
+on Linux, so the harness must hand out distinct ports (`emulator_config.free_udp_port`).
 
 The emulator runs in one background thread: it receives commands and setpoints, applies PX4's
 mode and arming rules (`px4_logic`), steps a `VehicleBackend` (default: `FirstOrderVehicle`) at
@@ -26,17 +26,16 @@ import socket
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import TracebackType
-from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from companion.validation import require_int_range, require_non_negative, require_positive
-from sim_harness.errors import ConfigError, SimError
+from sim_harness.errors import SimError
 from sim_harness.hil import px4_commands as cmds
 from sim_harness.hil import px4_messages as msgs
 from sim_harness.hil.emulated_vehicle import FirstOrderVehicle, VehicleBackend, VehicleStateNed
+from sim_harness.hil.emulator_config import LOOPBACK, EmulatorConfig
 from sim_harness.hil.px4_logic import (
     LandedState,
     MavResult,
@@ -49,60 +48,9 @@ from sim_harness.hil.px4_messages import SetpointRecord
 from sim_harness.hil.px4_param_server import ParamServer
 from sim_harness.hil.px4_params import param_table, with_param
 
-LOOPBACK = "127.0.0.1"
 _MAX_WAIT_S = 0.02  # longest the thread sleeps: bounds how long stop() takes
 
 logger = logging.getLogger(__name__)
-
-
-def free_udp_port() -> int:
-    """A UDP port on 127.0.0.1 that nothing is bound to right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind((LOOPBACK, 0))
-        return int(sock.getsockname()[1])
-
-
-@dataclass(frozen=True)
-class EmulatorConfig:
-    """Where to send, how often, and how the vehicle starts.
-
-    `client_port`: the UDP port the client listens on (MAVSDK `udpin://127.0.0.1:PORT`).
-    Rates in Hz; the start state is on the ground, disarmed, in `start_mode`, unless
-    `start_altitude_m` > 0 (then `start_armed` must be True: hovering at that altitude).
-    """
-
-    client_port: int
-    system_id: int = 1
-    component_id: int = 1
-    heartbeat_rate_hz: float = 1.0
-    telemetry_rate_hz: float = 30.0  # LOCAL_POSITION_NED, ATTITUDE(_QUATERNION), GLOBAL_POSITION
-    status_rate_hz: float = 2.0  # SYS_STATUS (battery), EXTENDED_SYS_STATE, HOME_POSITION, GPS
-    physics_rate_hz: float = 50.0
-    start_mode: Px4Mode = Px4Mode.HOLD
-    start_armed: bool = False
-    start_altitude_m: float = 0.0
-    start_yaw_rad: float = 0.0
-    home: msgs.Home = field(default_factory=lambda: msgs.Home(47.397742, 8.545594, 488.0))
-    log_capacity: int = 10_000  # setpoints and commands kept (oldest dropped first)
-    px4: Px4LogicConfig = field(default_factory=Px4LogicConfig)
-
-    def __post_init__(self) -> None:
-        require_int_range("emulator.client_port", self.client_port, 1, 65535)
-        require_int_range("emulator.system_id", self.system_id, 1, 255)
-        require_int_range("emulator.component_id", self.component_id, 1, 255)
-        for name in ("heartbeat_rate_hz", "telemetry_rate_hz", "status_rate_hz"):
-            require_positive(f"emulator.{name}", getattr(self, name))
-        require_positive("emulator.physics_rate_hz", self.physics_rate_hz)
-        require_non_negative("emulator.start_altitude_m", self.start_altitude_m)
-        require_int_range("emulator.log_capacity", self.log_capacity, 1)
-        if self.start_altitude_m > 0.0 and not self.start_armed:
-            raise ConfigError("emulator.start_armed: must be True when start_altitude_m > 0")
-
-    @classmethod
-    def hovering(cls, client_port: int, altitude_m: float = 5.0, **kwargs: Any) -> EmulatorConfig:
-        """Armed and hovering at `altitude_m` in POSCTL, as if a pilot had taken off."""
-        kwargs.setdefault("start_mode", Px4Mode.POSCTL)
-        return cls(client_port, start_armed=True, start_altitude_m=altitude_m, **kwargs)
 
 
 @dataclass(frozen=True)

@@ -27,8 +27,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.camera_side import RemoteCameras
+from sim_harness.hil.emulator_config import EmulatorConfig, free_udp_port
 from sim_harness.hil.px4_messages import Home
 from sim_harness.hil.px4_params import logic_config
 from sim_harness.hil.world_vehicle import WorldVehicle

@@ -125,7 +125,8 @@ def cameras(tmp_path: Path) -> Iterator[Any]:
 @pytest.fixture
 def px4() -> Iterator[Any]:
     """The PX4 emulator, armed and hovering at 5 m in POSCTL; heartbeats at 20 Hz."""
-    from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+    from sim_harness.hil.autopilot_emulator import AutopilotEmulator
+    from sim_harness.hil.emulator_config import EmulatorConfig, free_udp_port
 
     config = EmulatorConfig.hovering(free_udp_port(), 5.0, heartbeat_rate_hz=20.0)
     with AutopilotEmulator(config) as emulator:
@@ -180,12 +181,9 @@ class EngageRig:
     and the pymavlink PX4 emulator, hovering at 5 m in POSCTL with 1 Hz heartbeats like PX4."""
 
     def __init__(self, folder: Path, model: Path, px4: dict[str, Any]) -> None:
-        from sim_harness.hil.autopilot_emulator import (
-            AutopilotEmulator,
-            EmulatorConfig,
-            free_udp_port,
-        )
+        from sim_harness.hil.autopilot_emulator import AutopilotEmulator
         from sim_harness.hil.camera_emulator import CameraEmulator
+        from sim_harness.hil.emulator_config import EmulatorConfig, free_udp_port
         from sim_harness.hil.px4_logic import Px4LogicConfig
 
         self.folder, self.model = folder, model

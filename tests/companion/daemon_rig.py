@@ -25,8 +25,9 @@ import zenoh
 
 from companion.groundstation import SwarmTable, monitor_zenoh_config
 from companion.policy import Policy
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.camera_emulator import CameraEmulator
+from sim_harness.hil.emulator_config import EmulatorConfig, free_udp_port
 
 from .conftest import drone_document
 

@@ -21,7 +21,8 @@ from companion.autopilot import (
     forward_mavsdk_logs,
 )
 from companion.errors import AutopilotError, ConfigError, OffboardLostError
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
+from sim_harness.hil.emulator_config import EmulatorConfig, free_udp_port
 from sim_harness.hil.px4_logic import Px4LogicConfig, Px4Mode
 
 DO_SET_MODE = 176

@@ -19,8 +19,9 @@ from companion.daemon import Daemon
 from companion.errors import ModelError
 from companion.flight_log import LogReader
 from companion.health import HealthState
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.camera_emulator import CameraEmulator
+from sim_harness.hil.emulator_config import EmulatorConfig, free_udp_port
 from sim_harness.hil.px4_logic import Px4Mode
 
 from .daemon_rig import (

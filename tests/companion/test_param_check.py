@@ -24,7 +24,8 @@ from companion.param_check import (
     read_params_file,
 )
 from companion.px4_params_file import render_file
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
+from sim_harness.hil.emulator_config import EmulatorConfig, free_udp_port
 from sim_harness.hil.px4_param_server import PX4_STOCK
 
 SHIPPED = Path(__file__).resolve().parents[2] / "firmware_cfg" / "px4" / "companion.params"

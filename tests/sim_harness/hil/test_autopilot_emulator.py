@@ -13,12 +13,13 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from companion.errors import ConfigError
 from companion.frames import euler_zyx_from_quat, quat_to_rotmat
-from sim_harness.hil.autopilot_emulator import AutopilotEmulator, EmulatorConfig, free_udp_port
+from sim_harness.hil.autopilot_emulator import AutopilotEmulator
 from sim_harness.hil.emulated_vehicle import (
     FirstOrderVehicle,
     VelocityCommand,
     attitude_from_thrust,
 )
+from sim_harness.hil.emulator_config import EmulatorConfig, free_udp_port
 from sim_harness.hil.px4_logic import LandedState, MavResult, Px4Logic, Px4LogicConfig, Px4Mode
 
 FAST = {"heartbeat_rate_hz": 20.0, "status_rate_hz": 10.0}
