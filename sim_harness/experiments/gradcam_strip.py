@@ -19,7 +19,7 @@ from companion.camera.layout import FACE_NAMES
 from companion.errors import ModelError
 from sim_harness.experiments.runner import RunRecord, SuiteResult
 from sim_harness.learning.checkpoint import CheckpointError
-from sim_harness.learning.export import load_eager_model
+from sim_harness.learning.ensemble import load_eager_policy
 from sim_harness.learning.gradcam import TARGETS, grad_cam, save_gradcam_png
 from sim_harness.sim.render import PyBulletRenderer
 from sim_harness.sim.rollout import FlightLog
@@ -61,7 +61,7 @@ def saliency(
     network for one image, and its predicted body-FLU velocity (3,); None when the policy file
     carries no eager weights (Grad-CAM needs them)."""
     try:
-        model, _ = load_eager_model(model_path)
+        model, _ = load_eager_policy(model_path)
     except (ModelError, CheckpointError) as exc:
         log.warning("no Grad-CAM strip: %s", exc)
         return None

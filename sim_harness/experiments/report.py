@@ -181,9 +181,18 @@ def _model_lines(result: SuiteResult) -> list[str]:
 def _export_lines(meta: dict[str, Any]) -> list[str]:
     """How the export shaped the policy: the views it averages over and its output gain."""
     parts = []
+    members = meta.get("ensemble")
     runtime = meta.get("runtime")
     symmetry = runtime.get("symmetry") if isinstance(runtime, dict) else None
-    if isinstance(symmetry, dict) and symmetry.get("group") not in (None, "none"):
+    if isinstance(members, list):
+        described = ", ".join(
+            f"{m.get('weight'):g} x `{m.get('model')}` ({m.get('arch')}, `{m.get('symmetry')}`)"
+            for m in members
+            if isinstance(m, dict)
+        )
+        views = f"; {symmetry.get('views')} network calls an image" if symmetry else ""
+        parts.append(f"an ensemble, the answers of {described} averaged{views}")
+    elif isinstance(symmetry, dict) and symmetry.get("group") not in (None, "none"):
         parts.append(f"averaged over {symmetry.get('views')} views (`{symmetry['group']}`)")
     training = meta.get("training")
     gain = training.get("output_gain") if isinstance(training, dict) else None

@@ -57,10 +57,12 @@ class Source:
         }
 
 
-def require_weights(weights: Sequence[float] | None, count: int) -> list[float]:
+def require_weights(
+    weights: Sequence[float] | None, count: int, what: str = "an average"
+) -> list[float]:
     """The shares of `count` networks: equal when None; else each in (0, 1], summing to 1."""
     if count < 2:
-        raise ConfigError(f"models: an average needs at least 2 networks, got {count}")
+        raise ConfigError(f"models: {what} needs at least 2 networks, got {count}")
     if weights is None:
         return [1.0 / count] * count
     values = [float(w) for w in weights]

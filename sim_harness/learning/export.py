@@ -63,6 +63,7 @@ from sim_harness.learning.symmetry import SymmetricPolicy, require_group
 
 WEIGHTS_SUFFIX = ".weights.pt"
 EXPORT_TOLERANCE_MPS = 1e-4  # an export whose graph differs more than this from eager is refused
+ENSEMBLE_KEY = "ensemble"  # an ensemble policy's metadata and weights file list its members here
 
 
 @dataclass(frozen=True)
@@ -357,11 +358,28 @@ def load_eager_model(
 
     For a policy file, the policy's hash is verified (`load_model`), then its weights file's hash
     against the one recorded in the policy's metadata. Returns (model, checkpoint or metadata).
+    An ensemble's file is refused (it is several networks: `learning.ensemble.load_eager_policy`
+    reads it for Grad-CAM; fine-tuning and weight averaging take one network).
     """
     path = Path(path)
     if is_checkpoint(path):
         state = load_checkpoint(path, map_location=device)
         return model_from_checkpoint(state, device), state
+    state, metadata = verified_weights(path, device)
+    if ENSEMBLE_KEY in metadata:
+        raise ModelError(
+            f"{path} is an ensemble of {len(metadata[ENSEMBLE_KEY])} networks, not one"
+        )
+    model = build_from_config(state["model_config"], device)
+    model.load_state_dict(state["model"])
+    return model.eval(), metadata
+
+
+def verified_weights(
+    path: Path, device: str | torch.device = "cpu"
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A policy file's eager weights file, read after both hashes are checked: (its contents,
+    the policy's metadata)."""
     loaded = load_model(path)
     record = loaded.metadata.get("eager_weights")
     if not isinstance(record, dict):
@@ -373,10 +391,8 @@ def load_eager_model(
         raise ModelError(f"cannot read {weights}: {exc.strerror}") from exc
     if hashlib.sha256(data).hexdigest() != record["sha256"]:
         raise ModelError(f"{weights} does not match the hash recorded in {path.name}: refused")
-    state = torch.load(weights, map_location=device, weights_only=True)
-    model = build_from_config(state["model_config"], device)
-    model.load_state_dict(state["model"])
-    return model.eval(), loaded.metadata
+    state: dict[str, Any] = torch.load(weights, map_location=device, weights_only=True)
+    return state, loaded.metadata
 
 
 def load_for_inference(

@@ -21,7 +21,7 @@ Targets (the output is a vector, so the scalar must be chosen):
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,9 +61,30 @@ def _scalar_target(vel: torch.Tensor, target: str) -> torch.Tensor:
     return scalar
 
 
-def grad_cam(model: DroNet, images_u8: ArrayLike, target: str = "speed") -> GradCamResult:
+def _cam(network: DroNet, activation: torch.Tensor, grads: torch.Tensor) -> torch.Tensor:
+    """ReLU(sum_k alpha_k A_k) of one network's layer, laid out as the strip: (B, 1, 4, 24)."""
+    activation = network.as_strip(activation)
+    grads = network.as_strip(grads)
+    alpha = grads.mean(dim=(2, 3), keepdim=True)  # (B, C, 1, 1)
+    return torch.relu((alpha * activation).sum(dim=1, keepdim=True))
+
+
+def _networks(model: torch.nn.Module) -> list[DroNet]:
+    """The networks whose Grad-CAM layer is hooked: the model, or an ensemble's members."""
+    if isinstance(model, DroNet):
+        return [model]
+    members = getattr(model, "members", None)
+    if isinstance(members, torch.nn.ModuleList) and all(isinstance(m, DroNet) for m in members):
+        return [m for m in members if isinstance(m, DroNet)]
+    raise TypeError(f"Grad-CAM explains a DroNet or an ensemble of them, not {type(model)}")
+
+
+def grad_cam(model: torch.nn.Module, images_u8: ArrayLike, target: str = "speed") -> GradCamResult:
     """Grad-CAM of `model` for uint8 images (64, 384) or (B, 64, 384). See the module docstring.
 
+    `model` is a `DroNet` or an ensemble of them (`learning.ensemble.EnsembleNet`): there the
+    scalar is the ensemble's answer's, each member's map is computed at its own layer (its share
+    is inside the gradient) and the maps are added before the upsampling and normalization.
     The model is put in eval mode; its parameters are left untouched (no gradients accumulate).
     """
     if target not in TARGETS:
@@ -77,25 +98,31 @@ def grad_cam(model: DroNet, images_u8: ArrayLike, target: str = "speed") -> Grad
             f"{images.dtype} {images.shape}"
         )
     model.eval()
+    networks = _networks(model)
     device = next(model.parameters()).device
-    captured: list[torch.Tensor] = []
+    captured: dict[int, torch.Tensor] = {}
 
-    def keep(_module: torch.nn.Module, _inputs: object, out: torch.Tensor) -> None:
-        if not out.requires_grad:  # a model whose parameters were frozen
-            out.requires_grad_(True)
-        captured.append(out)
+    def keeper(k: int) -> Callable[[torch.nn.Module, object, torch.Tensor], None]:
+        def keep(_module: torch.nn.Module, _inputs: object, out: torch.Tensor) -> None:
+            if not out.requires_grad:  # a model whose parameters were frozen
+                out.requires_grad_(True)
+            captured[k] = out
 
-    hook = model.gradcam_layer.register_forward_hook(keep)
+        return keep
+
+    hooks = [n.gradcam_layer.register_forward_hook(keeper(k)) for k, n in enumerate(networks)]
     try:
         with torch.enable_grad():
             vel = model(torch.from_numpy(np.array(batch)).to(device))  # a writable copy
-            (grads,) = torch.autograd.grad(_scalar_target(vel, target), captured[0])
+            layers = [captured[k] for k in range(len(networks))]
+            grads = torch.autograd.grad(_scalar_target(vel, target), layers)
     finally:
-        hook.remove()
-    activation = model.as_strip(captured[0].detach())
-    grads = model.as_strip(grads)
-    alpha = grads.mean(dim=(2, 3), keepdim=True)  # (B, C, 1, 1)
-    cam = torch.relu((alpha * activation).sum(dim=1, keepdim=True))  # (B, 1, 4, 24)
+        for hook in hooks:
+            hook.remove()
+    cam = sum(
+        (_cam(n, a.detach(), g) for n, a, g in zip(networks, layers, grads, strict=True)),
+        torch.zeros(()),
+    )
     up = F.interpolate(
         cam, size=(IMAGE_HEIGHT_PX, IMAGE_WIDTH_PX), mode="bilinear", align_corners=False
     )

@@ -232,3 +232,14 @@ def test_model_lines_say_how_the_export_shaped_the_policy() -> None:
         {"runtime": {"symmetry": {"group": "none", "views": 1}}, "training": {"output_gain": 1.0}}
     )
     assert "Exported policy" not in plain  # nothing to say for a plain export
+    members = [
+        {"weight": 0.5, "model": "models/a.pt", "arch": "dronet", "symmetry": "d4"},
+        {"weight": 0.5, "model": "models/c.pt", "arch": "cube", "symmetry": "d4"},
+    ]
+    ensemble = _model_text(
+        {"ensemble": members, "runtime": {"symmetry": {"group": "d4+d4", "views": 16}}}
+    )
+    assert (
+        "- Exported policy: an ensemble, the answers of 0.5 x `models/a.pt` (dronet, `d4`), "
+        "0.5 x `models/c.pt` (cube, `d4`) averaged; 16 network calls an image" in ensemble
+    )
