@@ -23,7 +23,6 @@ from those eager members (`EXPORT_TOLERANCE_MPS`), so the saliency is of the net
 from __future__ import annotations
 
 import copy
-import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,19 +32,19 @@ import torch
 from torch import nn
 
 from companion.errors import ConfigError, ModelError
-from companion.model_file import LoadedModel, load_model, save_model, torchscript_calls
+from companion.model_file import LoadedModel, load_model, torchscript_calls
 from sim_harness.learning.average import require_weights
 from sim_harness.learning.export import (
     ENSEMBLE_KEY,
     EXPORT_TOLERANCE_MPS,
+    default_check_images,
     is_checkpoint,
     load_eager_model,
-    make_reference,
     model_config,
     verified_weights,
-    weights_path_for,
+    write_policy,
 )
-from sim_harness.learning.model import DroNet, build_from_config, count_parameters, example_input
+from sim_harness.learning.model import DroNet, build_from_config, count_parameters
 from sim_harness.learning.symmetry import SymmetricPolicy, require_group
 
 MAX_MEMBERS = 8
@@ -242,40 +241,26 @@ def export_ensemble(
     random images)."""
     path = Path(path)
     scripted = scripted if scripted is not None else scripted_ensemble(members)
-    if check_images_u8 is None:
-        generator = torch.Generator().manual_seed(0)
-        check_images_u8 = torch.randint(
-            0, 256, tuple(example_input(16).shape), dtype=torch.uint8, generator=generator
-        )
+    check_images_u8 = default_check_images() if check_images_u8 is None else check_images_u8
     with torch.inference_mode():
         got = scripted(check_images_u8)
         diff = float((got - _eager_policy(members)(check_images_u8)).abs().max())
     if not diff <= EXPORT_TOLERANCE_MPS:
         raise ModelError(f"the ensemble's graph differs from its members by {diff:g} m/s: refused")
-    weights = weights_path_for(path)
-    weights.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(
-        {
-            ENSEMBLE_KEY: [
-                {
-                    "model_config": model_config(m.network),
-                    "model": m.network.state_dict(),
-                    "weight": m.weight,
-                    "symmetry": m.symmetry,
-                }
-                for m in members
-            ]
-        },
-        weights,
-    )
-    metadata = ensemble_metadata(members, test_metrics, command)
-    metadata["eager_weights"] = {
-        "file": weights.name,
-        "sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),
+    weights_state = {
+        ENSEMBLE_KEY: [
+            {
+                "model_config": model_config(m.network),
+                "model": m.network.state_dict(),
+                "weight": m.weight,
+                "symmetry": m.symmetry,
+            }
+            for m in members
+        ]
     }
-    metadata["export_check"] = {"images": int(check_images_u8.shape[0]), "max_abs_diff_mps": diff}
-    reference = make_reference(scripted, "computed by export_ensemble from the exported graph")
-    digest = save_model(scripted, metadata, path, reference)
+    metadata = ensemble_metadata(members, test_metrics, command)
+    checked = int(check_images_u8.shape[0])
+    digest, weights, _ = write_policy(scripted, metadata, path, weights_state, checked, diff)
     return EnsembleExport(path, digest, weights, diff, metadata)
 
 

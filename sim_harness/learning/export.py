@@ -225,29 +225,49 @@ def export_policy(
     path = Path(path)
     require_group(symmetry)
     scripted = scripted if scripted is not None else to_torchscript(model, symmetry=symmetry)
-    if check_images_u8 is None:
-        generator = torch.Generator().manual_seed(0)
-        check_images_u8 = torch.randint(
-            0, 256, tuple(example_input(16).shape), dtype=torch.uint8, generator=generator
-        )
+    check_images_u8 = default_check_images() if check_images_u8 is None else check_images_u8
     cpu = to_channels_last(copy.deepcopy(model)).eval()
     eager: torch.nn.Module = cpu if symmetry == "none" else SymmetricPolicy(cpu, symmetry).eval()
     with torch.inference_mode():
         diff = float((scripted(check_images_u8) - eager(check_images_u8)).abs().max())
     if not diff <= EXPORT_TOLERANCE_MPS:
         raise ModelError(f"exported graph differs from the eager model by {diff:g} m/s: refused")
+    metadata = policy_metadata(cpu, manifest, test_metrics, training, symmetry)
+    weights_state = {"model_config": model_config(cpu), "model": cpu.state_dict()}
+    digest, weights, reference = write_policy(
+        scripted, metadata, path, weights_state, int(check_images_u8.shape[0]), diff
+    )
+    return ExportResult(path, digest, weights, diff, metadata, reference)
+
+
+def default_check_images() -> torch.Tensor:
+    """The export check's images when the caller gives none: 16 seeded random (64, 384) uint8."""
+    generator = torch.Generator().manual_seed(0)
+    shape = tuple(example_input(16).shape)
+    return torch.randint(0, 256, shape, dtype=torch.uint8, generator=generator)
+
+
+def write_policy(
+    scripted: torch.jit.ScriptModule,
+    metadata: dict[str, Any],
+    path: Path,
+    weights_state: dict[str, Any],
+    checked_images: int,
+    diff: float,
+) -> tuple[str, Path, Reference]:
+    """Write the eager weights file, then the policy file and its sidecar: `metadata` gains the
+    weights file's name and hash and the export check's figures; the sidecar the platform check's
+    reference. Returns (the policy's hash, the weights file, the reference)."""
     weights = weights_path_for(path)
     weights.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"model_config": model_config(cpu), "model": cpu.state_dict()}, weights)
-    metadata = policy_metadata(cpu, manifest, test_metrics, training, symmetry)
+    torch.save(weights_state, weights)
     metadata["eager_weights"] = {
         "file": weights.name,
         "sha256": hashlib.sha256(weights.read_bytes()).hexdigest(),
     }
-    metadata["export_check"] = {"images": int(check_images_u8.shape[0]), "max_abs_diff_mps": diff}
-    reference = make_reference(scripted, "computed by export_policy from the exported graph")
-    digest = save_model(scripted, metadata, path, reference)
-    return ExportResult(path, digest, weights, diff, metadata, reference)
+    metadata["export_check"] = {"images": checked_images, "max_abs_diff_mps": diff}
+    reference = make_reference(scripted, "computed at export from the exported graph")
+    return save_model(scripted, metadata, path, reference), weights, reference
 
 
 def make_reference(

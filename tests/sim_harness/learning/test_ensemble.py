@@ -129,7 +129,7 @@ def test_bad_shares_and_counts_are_refused_before_anything_is_read(tmp_path, cap
 def test_a_nested_ensemble_another_dataset_or_a_tampered_member_is_refused(
     members, smoke_dataset, tmp_path, capsys
 ) -> None:
-    a, b = members
+    a = members[0]
     inner = tmp_path / "inner" / "ab.pt"
     assert run_ensemble(members, smoke_dataset, inner) == 0
     assert run_ensemble([inner, a], smoke_dataset, tmp_path / "nested.pt") == 2
