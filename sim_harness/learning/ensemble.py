@@ -183,6 +183,7 @@ def ensemble_metadata(
     for member in described:
         chain += [c for c in member["chain"] if c not in chain]
     views = sum(len(require_group(m.symmetry)) for m in members)
+    groups = {m.symmetry for m in members}
     metadata.update(
         {
             ENSEMBLE_KEY: described,
@@ -204,8 +205,10 @@ def ensemble_metadata(
                 **metadata.get("runtime", {}),
                 "graph": "scripted weighted mean of the members' own frozen graphs",
                 "symmetry": {
-                    "group": "+".join(m.symmetry for m in members),
+                    # exactly equivariant under a group all members average over
+                    "group": groups.pop() if len(groups) == 1 else "none",
                     "views": views,
+                    "members": [m.symmetry for m in members],
                     "what": "each member averaged over its own symmetric views (its export's); "
                     f"{views} network calls an image in all",
                 },

@@ -388,7 +388,8 @@ def load_eager_model(
     state, metadata = verified_weights(path, device)
     if ENSEMBLE_KEY in metadata:
         raise ModelError(
-            f"{path} is an ensemble of {len(metadata[ENSEMBLE_KEY])} networks, not one"
+            f"{path} is an ensemble of {len(metadata[ENSEMBLE_KEY])} networks, not one: fine-tune "
+            "or average one of its members (its metadata's `ensemble` lists them)"
         )
     model = build_from_config(state["model_config"], device)
     model.load_state_dict(state["model"])

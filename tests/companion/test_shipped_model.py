@@ -143,11 +143,16 @@ def mirrored(image: np.ndarray) -> np.ndarray:
 
 def test_the_shipped_model_is_the_symmetrized_policy_its_metadata_names() -> None:
     """The sidecar names the views the graph averages over: the rig's four quarter turns (c4),
-    and with d4 each also mirrored. A constant image looks the same in every view, so such a
-    policy's horizontal answer to it is exactly zero; a quarter turn of the faces turns its
-    answer by a quarter turn; with d4, the mirrored scene gets the mirrored answer."""
-    symmetry = json.loads(sidecar_path(MODEL).read_text())["metadata"]["runtime"]["symmetry"]
-    assert (symmetry["group"], symmetry["views"]) in (("c4", 4), ("d4", 8))
+    and with d4 each also mirrored (an ensemble's members each average over them). A constant
+    image looks the same in every view, so such a policy's horizontal answer to it is exactly
+    zero; a quarter turn of the faces turns its answer by a quarter turn; with d4, the mirrored
+    scene gets the mirrored answer."""
+    metadata = json.loads(sidecar_path(MODEL).read_text())["metadata"]
+    symmetry = metadata["runtime"]["symmetry"]
+    # an ensemble (`swarm-sim ensemble`) calls each member's own views
+    members = [m["symmetry"] for m in metadata.get("ensemble", [])] or [symmetry["group"]]
+    assert set(members) == {symmetry["group"]}
+    assert (symmetry["group"], symmetry["views"] // len(members)) in (("c4", 4), ("d4", 8))
     golden = json.loads(GOLDEN.read_text())["outputs"]
     assert np.abs(golden[f"gray{GRAY}"][:2]).max() < 1e-6 < abs(golden[f"gray{GRAY}"][2])
     image = inputs()["horizon"]

@@ -72,7 +72,9 @@ def test_the_file_answers_the_weighted_mean_of_its_members_and_the_drone_loads_i
     assert [m["arch"] for m in listed] == ["dronet", "cube"]
     assert [m["symmetry"] for m in listed] == ["d4", "none"]
     assert listed[0]["sha256"] == json.loads(a.with_suffix(".json").read_text())["sha256"]
-    assert metadata["runtime"]["symmetry"]["views"] == 9  # 8 + 1 network calls an image
+    symmetry = metadata["runtime"]["symmetry"]
+    assert symmetry["views"] == 9  # 8 + 1 network calls an image
+    assert (symmetry["group"], symmetry["members"]) == ("none", ["d4", "none"])
     assert metadata["test_metrics"]["split"] == "test"
     assert metadata["training"]["chain"][:2] == ["a", "b"]
 
