@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 DEMO_SEEDS = 1
 # How long the demo takes (4 flights; the two CNN flights render 9 x 6 views per step and take
 # most of it): measured 75 s on 2 idle cores, 94 s on a busy machine. The README says the same.
-DEMO_DURATION = "about 1.5 min on 2 cores"
+DEMO_DURATION = "about 5 min on 2 cores"
 HOW_TO_GET_A_MODEL = (
     "make one with `swarm-sim dataset generate --preset quick`, "
     "`swarm-sim train --dataset data/quick-s0`, then `swarm-sim export --checkpoint "
