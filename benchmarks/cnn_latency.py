@@ -191,6 +191,23 @@ def main() -> None:
     write_report(report, args.out)
 
 
+def batch1_report(
+    benchmark: str, results: dict[str, object], load_before: tuple[float, ...], **extra: object
+) -> dict[str, object]:
+    """The JSON of a batch-1, one-thread, fused latency benchmark: its figures, the machine and
+    the 1-minute load average before and after."""
+    return {
+        "benchmark": benchmark,
+        "threads": 1,
+        "batch": 1,
+        "graph_fusion": True,
+        **extra,
+        "results": results,
+        "load_average_1min": [load_before[0], os.getloadavg()[0]],
+        "machine": machine(),
+    }
+
+
 def write_report(report: dict[str, object], out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n")

@@ -17,7 +17,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from cnn_latency import RESULTS, WARMUP_CALLS, machine, summarize, time_calls, write_report
+from cnn_latency import (
+    RESULTS,
+    WARMUP_CALLS,
+    batch1_report,
+    summarize,
+    time_calls,
+    write_report,
+)
 
 from companion.model_file import enable_graph_fusion, load_model
 
@@ -58,15 +65,7 @@ def main() -> None:
             f"{r['p50_ms']:8.2f} {r['p99_ms']:8.2f} {r['p50_vs_first']:7.2f}x "
             f"{views[name]:11d}  {name}"
         )
-    report = {
-        "benchmark": "policy_latency",
-        "threads": 1,
-        "batch": 1,
-        "graph_fusion": True,
-        "results": results,
-        "load_average_1min": [load_before[0], os.getloadavg()[0]],
-        "machine": machine(),
-    }
+    report = batch1_report("policy_latency", dict(results), load_before)
     write_report(report, args.out)
 
 

@@ -21,9 +21,9 @@ import torch
 from cnn_latency import (
     RESULTS,
     WARMUP_CALLS,
+    batch1_report,
     calibrated_model,
     load_script,
-    machine,
     summarize,
     time_calls,
     write_report,
@@ -70,16 +70,8 @@ def main() -> None:
             f"{group:8} {r['views']:5d} {r['p50_ms']:8.3f} {r['p99_ms']:8.3f} "
             f"{r['p50_vs_none']:9.2f}x"
         )
-    report = {
-        "benchmark": "symmetry_latency",
-        "threads": 1,
-        "batch": 1,
-        "graph_fusion": True,
-        "model": str(args.model) if args.model else "untrained ResNet-8 (seed 0)",
-        "results": results,
-        "load_average_1min": [load_before[0], os.getloadavg()[0]],
-        "machine": machine(),
-    }
+    model_name = str(args.model) if args.model else "untrained ResNet-8 (seed 0)"
+    report = batch1_report("symmetry_latency", dict(results), load_before, model=model_name)
     write_report(report, args.out)
 
 
