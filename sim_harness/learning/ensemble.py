@@ -156,11 +156,6 @@ def scripted_ensemble(members: Sequence[Member]) -> torch.jit.ScriptModule:
     return scripted
 
 
-def eager_ensemble(members: Sequence[Member]) -> EnsembleNet:
-    """The members' eager networks (bare, for Grad-CAM) and shares."""
-    return EnsembleNet([m.network for m in members], [m.weight for m in members]).eval()
-
-
 def _eager_policy(members: Sequence[Member]) -> nn.Module:
     """What the exported graph must compute: each eager member under its own symmetry average."""
     nets = [
