@@ -59,7 +59,7 @@ class PolicyEnsemble(nn.Module):
         self.weights = [float(w) for w in weights]
 
     def forward(self, images_u8: torch.Tensor) -> torch.Tensor:
-        total = torch.zeros(images_u8.shape[0], 3)
+        total = torch.zeros(images_u8.shape[0], 3, device=images_u8.device)
         for k, member in enumerate(self.members):
             total = total + self.weights[k] * member(images_u8)
         return total
