@@ -11,7 +11,8 @@ error in the part the CNN learns (the Reynolds term, separation + cohesion), flo
 seeds (the evaluation seeds stay unseen) against the exact teacher on the same seeds:
 
 - `nearS`: every neighbour within 1.2 m weighs S in the separation sum (S < 1: a close
-  neighbour answered too weakly, the CNN's error at a cube-map corner; S > 1: too strongly);
+  neighbour answered too weakly, the CNN's error at a cube-map corner; S > 1: too strongly, or
+  a close-range boost, the law `swarm-sim train --near-separation-scale S` teaches);
 - `farS`: every neighbour beyond 1.2 m weighs S in the separation sum (the approach before the
   crossing answered too weakly or too strongly);
 - `reyS`: the whole Reynolds term times S (a policy that shrinks, or inflates, every answer);
@@ -51,11 +52,11 @@ from companion.flocking import (
 )
 from sim_harness.experiments.machine import machine
 from sim_harness.experiments.suites import EXPERIMENTS
+from sim_harness.learning.relabel import NEAR_M
 from sim_harness.sim.controllers import SENSE_NEIGHBOURS, Observation, TeacherController
 from sim_harness.sim.rollout import fly, summarize
 from sim_harness.sim.scenarios import build_scenario
 
-NEAR_M = 1.2  # "close range": the neighbours a `nearS` student weighs by S
 PAIR_MARGIN_M = 0.1  # the bar's criterion: at most this far below the teacher's closest pair
 DEFAULT_VARIANTS = (
     "near0.7,near0.8,near0.9,near1.1,near1.25,far0.8,far0.9,far1.1,"

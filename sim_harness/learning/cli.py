@@ -156,6 +156,15 @@ def add_learning_commands(sub: Any) -> None:
         "too) recomputed from the flock's stored positions; a student that keeps its margin on "
         "the cautious side (default 1: the recorded labels; range 0.5-2)",
     )
+    t.add_argument(
+        "--near-separation-scale",
+        type=float,
+        default=1.0,
+        metavar="C",
+        help="and the neighbours closer than 1.2 m weigh C in the separation sum: a close-range "
+        "boost where the paper's law comes under 1 m (a flock contracting onto its migration "
+        "point); labels recomputed as for --separation-scale (default 1; range 0.5-4)",
+    )
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(handler=_train)
 
@@ -236,6 +245,7 @@ def _train(args: argparse.Namespace) -> int:
         weight_flock=args.weight_flock,
         lr_schedule=args.lr_schedule,
         separation_scale=args.separation_scale,
+        near_separation_scale=args.near_separation_scale,
         progress=not args.no_progress,
         command=command_line(),
     )

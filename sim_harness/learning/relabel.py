@@ -4,15 +4,24 @@ Every dataset stores, for every sample, the teacher's Reynolds command in the bo
 label) and the drone's world position and attitude at the moment its image was taken; the samples
 of one run at one time step are the whole flock. From those positions the separation term can be
 computed again, so a training run can learn the flocking law with its separation gain scaled by
-S (k_sep x S) without drawing one image again:
+S (k_sep x S), and with the neighbours closer than `NEAR_M` weighing C in the separation sum
+(a close-range boost), without drawing one image again:
 
     label' = label + (S - 1) * R_body_world * separation(positions)
+                   + S * (C - 1) * R_body_world * separation_near(positions)
+
+where separation_near is the separation term's share from the neighbours within `NEAR_M`
+(still averaged over all neighbours, as the law averages).
 
 Why a student would learn a law other than the one it is judged against: the CNN's errors act on
 the flock like noise on the command, and the closest pair of a crossing is what such noise costs
 (`benchmarks/crossing_sensitivity.py`: a student whose separation runs a few percent weak holds
 a pair 0.1 m closer). A student taught a slightly stronger separation keeps that margin on its
-side. At flight time nothing changes: each drone's command still comes from its own image
+side. The close-range boost answers where the paper's law itself comes under 1 m: where nine or
+twelve drones reach one migration point, every drone's migration term aims at that point and the
+law's separation, averaged over all neighbours, pushes back too weakly
+(`benchmarks/crossing_sensitivity.py --experiment n12 --variants near2`). At flight time nothing
+changes: each drone's command still comes from its own image
 through the CNN, plus its own migration term and the speed cap.
 
 Before relabelling, the stored labels are recomputed from the positions with the unscaled law and
@@ -35,15 +44,17 @@ from sim_harness.learning.batches import JoinedSplit, SplitArrays, StackedImages
 from sim_harness.learning.flock_loss import flock_ids
 
 POSITION_COLUMNS = ("pos_world_enu", "q_world_body")
+NEAR_M = 1.2  # the close-range boost weighs the neighbours closer than this
 # the stored label is float32, the positions too: the law recomputed from them agrees to ~1e-5
 LABEL_TOLERANCE_MPS = 2e-3
 
 
 def flock_separation_body(
     meta: Mapping[str, NDArray[Any]], params: FlockingParams
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(separation, separation + cohesion) of every sample, body FLU m/s, from the positions of
-    its flock (the rows of one run at one time step, as `flock_ids` groups them)."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """(separation, its share from the neighbours within `NEAR_M`, separation + cohesion) of
+    every sample, body FLU m/s, from the positions of its flock (the rows of one run at one time
+    step, as `flock_ids` groups them)."""
     missing = [c for c in POSITION_COLUMNS if c not in meta]
     if missing:
         raise ConfigError(
@@ -55,6 +66,7 @@ def flock_separation_body(
     pos = np.asarray(meta["pos_world_enu"], dtype=np.float64)
     n = len(flock)
     sep_world = np.zeros((n, 3))
+    near_world = np.zeros((n, 3))
     rey_world = np.zeros((n, 3))
     bounds = np.flatnonzero(np.diff(flock)) + 1
     starts = np.concatenate(([0], bounds))
@@ -64,17 +76,21 @@ def flock_separation_body(
     for size in np.unique(sizes):
         first = starts[sizes == size]
         rows = first[:, None] + np.arange(size)[None, :]  # (F, size)
-        offsets = pairwise_offsets_batched(pos[rows])
-        valid = np.broadcast_to(~np.eye(size, dtype=bool), offsets.shape[:-1])
-        sep, coh, _ = reynolds_from_offsets(
-            offsets.reshape(-1, size, 3), valid.reshape(-1, size), params
-        )
+        offsets = pairwise_offsets_batched(pos[rows]).reshape(-1, size, 3)
+        valid = np.tile(~np.eye(size, dtype=bool), (len(first), 1))
+        sep, coh, count = reynolds_from_offsets(offsets, valid, params)
+        near = valid & (np.linalg.norm(offsets, axis=-1) < NEAR_M)
+        part, _, n_near = reynolds_from_offsets(offsets, near, params)
+        # `part` is averaged over the near neighbours; the law averages over all of them
+        share = np.divide(n_near, count, out=np.zeros(count.shape), where=count > 0)
         sep_world[rows.ravel()] = sep
+        near_world[rows.ravel()] = share[:, None] * part
         rey_world[rows.ravel()] = sep + coh
     to_world = quat_to_rotmat(np.asarray(meta["q_world_body"], dtype=np.float64))
     to_body = np.transpose(to_world, (0, 2, 1))
     return (
         np.einsum("nij,nj->ni", to_body, sep_world),
+        np.einsum("nij,nj->ni", to_body, near_world),
         np.einsum("nij,nj->ni", to_body, rey_world),
     )
 
@@ -90,13 +106,15 @@ def cautious_targets(
     separation_scale: float,
     params: FlockingParams | None = None,
     what: str = "the training data",
+    near_scale: float = 1.0,
 ) -> NDArray[np.float32]:
-    """The labels of the law with k_sep x `separation_scale` (float32 (n, 3), body FLU m/s).
+    """The labels of the law with k_sep x `separation_scale` and the neighbours within `NEAR_M`
+    weighing `near_scale` in its separation sum (float32 (n, 3), body FLU m/s).
 
     Raises ConfigError when the stored labels are not the unscaled law's of the stored positions.
     """
     params = params or FlockingParams()
-    sep_body, rey_body = flock_separation_body(meta, params)
+    sep_body, near_body, rey_body = flock_separation_body(meta, params)
     stored = np.asarray(targets, dtype=np.float64)
     err = np.abs(rey_body - stored).max(axis=1)
     worst = int(np.argmax(err)) if len(err) else 0
@@ -110,14 +128,20 @@ def cautious_targets(
             f"{int((err > LABEL_TOLERANCE_MPS).sum())} samples off): an incomplete flock, or "
             "other gains; relabel only data written by this project's generators"
         )
-    return (stored + (separation_scale - 1.0) * sep_body).astype(np.float32)
+    boost = separation_scale * (near_scale - 1.0)
+    return (stored + (separation_scale - 1.0) * sep_body + boost * near_body).astype(np.float32)
 
 
-def relabelled(split: SplitArrays, separation_scale: float, what: str) -> JoinedSplit:
-    """`split` with the labels of the law whose separation gain is scaled by `separation_scale`
-    (its images shared, not copied); `what` names the split in an error."""
+def relabelled(
+    split: SplitArrays, separation_scale: float, what: str, near_scale: float = 1.0
+) -> JoinedSplit:
+    """`split` with the labels of the law whose separation gain is scaled by `separation_scale`,
+    its neighbours within `NEAR_M` by `near_scale` more (its images shared, not copied); `what`
+    names the split in an error."""
     images = split.images
     if not isinstance(images, StackedImages):
         images = StackedImages([np.asarray(images)])
-    targets = cautious_targets(split.targets, split.meta, separation_scale, what=what)
+    targets = cautious_targets(
+        split.targets, split.meta, separation_scale, what=what, near_scale=near_scale
+    )
     return JoinedSplit(images=images, targets=targets, meta=split.meta)

@@ -68,7 +68,7 @@ from sim_harness.learning.flock_loss import (
 )
 from sim_harness.learning.model import DroNet, build_model
 from sim_harness.learning.optimization import Plateau, cosine_lr_at, make_optimizer, make_scheduler
-from sim_harness.learning.relabel import relabelled
+from sim_harness.learning.relabel import NEAR_M, relabelled
 from sim_harness.learning.sample_weights import SampleWeighting
 from sim_harness.learning.symmetry import augment_with_views
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
@@ -217,10 +217,14 @@ def train(config: TrainConfig) -> TrainResult:
             int(counts.sum()),
         )
     val_split: SplitArrays = dataset.split("val")
-    if config.separation_scale != 1.0:
-        train_split = relabelled(train_split, config.separation_scale, "the training data")
-        val_split = relabelled(val_split, config.separation_scale, f"{config.dataset}'s val split")
-        log.info("labels: the flocking law with k_sep x %g", config.separation_scale)
+    if config.separation_scale != 1.0 or config.near_separation_scale != 1.0:
+        scales = (config.separation_scale, config.near_separation_scale)
+        train_split = relabelled(train_split, scales[0], "the training data", scales[1])
+        val_split = relabelled(val_split, scales[0], f"{config.dataset}'s val split", scales[1])
+        log.info(
+            "labels: the flocking law with k_sep x %g, neighbours within %g m x %g more",
+            *(scales[0], NEAR_M, scales[1]),
+        )
     return train_on(config, dataset.manifest, train_split, val_split)
 
 

@@ -79,6 +79,9 @@ class TrainConfig:
     # learn the flocking law with its separation gain times this (`sim_harness.learning.relabel`:
     # every label, validation's too, recomputed from the stored positions); 1: the recorded labels
     separation_scale: float = 1.0
+    # and the neighbours closer than `relabel.NEAR_M` (1.2 m) weigh this in its separation sum:
+    # a close-range boost (1: the law's own weighting)
+    near_separation_scale: float = 1.0
 
     def __post_init__(self) -> None:
         require_int_range("max_epochs", self.max_epochs, 1)
@@ -118,6 +121,7 @@ class TrainConfig:
         if self.weight_flock is not None:
             require_range("weight_flock", self.weight_flock, 0.0, 100.0, low_inclusive=False)
         require_range("separation_scale", self.separation_scale, 0.5, 2.0)
+        require_range("near_separation_scale", self.near_separation_scale, 0.5, 4.0)
         if self.lr_schedule not in LR_SCHEDULES:
             raise ConfigError(
                 f"lr_schedule: {self.lr_schedule!r} is not one of {', '.join(LR_SCHEDULES)}"

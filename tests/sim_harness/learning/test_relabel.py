@@ -97,3 +97,45 @@ def test_a_run_learns_and_validates_on_the_cautious_labels(smoke_dataset, tmp_pa
     assert abs(float(np.mean(cautious**2)) - recorded) > 0.01 * recorded  # not the recorded ones
     saved = torch.load(tmp_path / "run" / "last.ckpt", weights_only=False)
     assert saved["config"]["separation_scale"] == 1.3
+
+
+def _boosted_law_body(pos: np.ndarray, rot: np.ndarray, scale: float, near: float) -> np.ndarray:
+    """Agent by agent, the separation sum with neighbours within 1.2 m weighing `near`, all x
+    `scale`, plus cohesion, in each agent's body frame: an independent statement of the law."""
+    p = FlockingParams()
+    out = np.zeros_like(pos)
+    for i in range(len(pos)):
+        r = np.delete(pos - pos[i], i, axis=0)
+        d = np.linalg.norm(r, axis=1)
+        w = np.where(d < 1.2, near, 1.0)
+        sep = -scale * p.k_sep / len(r) * (w[:, None] * r / d[:, None] ** 2).sum(axis=0)
+        coh = p.k_coh / len(r) * r.sum(axis=0)
+        out[i] = rot[i].T @ (sep + coh)
+    return out
+
+
+def test_the_close_range_boost_weighs_the_near_neighbours_only() -> None:
+    labels, meta = _flocks((9, 3, 12, 9))
+    pos = meta["pos_world_enu"].astype(np.float64)
+    rot = quat_to_rotmat(meta["q_world_body"].astype(np.float64))
+    boosted = cautious_targets(labels, meta, 1.1, near_scale=2.0)
+    start = 0
+    for n in (9, 3, 12, 9):
+        rows = slice(start, start + n)
+        expected = _boosted_law_body(pos[rows], rot[rows], 1.1, 2.0)
+        np.testing.assert_allclose(boosted[rows], expected, atol=1e-4)
+        start += n
+    # agents with no neighbour within 1.2 m get the k_sep x 1.1 labels unchanged by the boost
+    d = np.linalg.norm(pos[:9, None] - pos[None, :9], axis=-1) + 10 * np.eye(9)
+    alone = np.flatnonzero(d.min(axis=1) >= 1.2)
+    assert len(alone) > 0
+    plain = cautious_targets(labels, meta, 1.1)
+    np.testing.assert_allclose(boosted[alone], plain[alone], atol=1e-6)
+    # the close pair (agents 0 and 1, 0.63 m apart) flees harder than under k_sep x 1.1
+    away = pos[0] - pos[1]
+    assert (rot[0] @ boosted[0]) @ away > (rot[0] @ plain[0]) @ away + 0.3
+
+
+def test_a_close_range_boost_out_of_range_names_the_field(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="near_separation_scale"):
+        TrainConfig(dataset=tmp_path, out_dir=tmp_path, near_separation_scale=5.0)
