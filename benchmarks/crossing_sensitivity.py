@@ -21,6 +21,10 @@ seeds (the evaluation seeds stay unseen) against the exact teacher on the same s
 - `noiseS`: the Reynolds term plus white Gaussian noise of S m/s per axis, drawn anew every
   control step (a policy with unbiased, uncorrelated errors of that size).
 
+Terms join with `+`: `sep1.15+near2` is the law `swarm-sim train --separation-scale 1.15
+--near-separation-scale 2` teaches (the whole separation sum, its close-range boost included,
+times 1.15).
+
 Each keeps the migration term and the speed cap exact, as the CNN's flight does. Per variant:
 seeds whose closest pair is within 0.1 m of the teacher's (the bar's criterion), the mean
 difference, the mean order parameter and the centroid drift against the teacher's (two more of
@@ -65,15 +69,14 @@ DEFAULT_VARIANTS = (
 
 
 class StudentController:
-    """The teacher's law with one controlled error in its Reynolds term (see the module doc)."""
+    """The teacher's law with controlled errors in its Reynolds term (see the module doc)."""
 
     name = "student"
     senses = frozenset({SENSE_NEIGHBOURS})
 
-    def __init__(self, params: FlockingParams, kind: str, value: float, seed: int) -> None:
+    def __init__(self, params: FlockingParams, terms: dict[str, float], seed: int) -> None:
         self.params = params
-        self.kind = kind
-        self.value = value
+        self.terms = terms
         self.seed = seed
         self._rng = np.random.default_rng(seed)
 
@@ -87,35 +90,41 @@ class StudentController:
             raise ValueError("the student needs the 'neighbours' sense")
         own = observation.own
         p = self.params
+        t = self.terms
         valid = np.asarray(sensing.perceived, dtype=bool)
         offsets = np.asarray(sensing.offsets_world_enu, dtype=float)
         separation, cohesion, count = reynolds_from_offsets(offsets, valid, p)
-        if self.kind == "sep":
-            separation = self.value * separation
-        elif self.kind in ("near", "far"):
-            # the separation of the neighbours in range, averaged over all of them as the law does
-            near = np.linalg.norm(np.where(valid[..., None], offsets, 0.0), axis=-1) < NEAR_M
-            subset = valid & (near if self.kind == "near" else ~near)
-            part, _, n_part = reynolds_from_offsets(offsets, subset, p)
-            share = np.divide(n_part, count, out=np.zeros(count.shape), where=count > 0)
-            separation = separation + (self.value - 1.0) * share[:, None] * part
-        reynolds = separation + cohesion
-        if self.kind == "rey":
-            reynolds = self.value * reynolds
-        elif self.kind == "noise":
-            reynolds = reynolds + self._rng.normal(0.0, self.value, size=reynolds.shape)
+        near = np.linalg.norm(np.where(valid[..., None], offsets, 0.0), axis=-1) < NEAR_M
+        for kind, subset in (("near", valid & near), ("far", valid & ~near)):
+            if kind in t:
+                # the separation of the neighbours in range, averaged over all of them as the law
+                part, _, n_part = reynolds_from_offsets(offsets, subset, p)
+                share = np.divide(n_part, count, out=np.zeros(count.shape), where=count > 0)
+                separation = separation + (t[kind] - 1.0) * share[:, None] * part
+        reynolds = t.get("sep", 1.0) * separation + cohesion
+        reynolds = t.get("rey", 1.0) * reynolds
+        if "noise" in t:
+            reynolds = reynolds + self._rng.normal(0.0, t["noise"], size=reynolds.shape)
         migration = migration_velocity(own.pos_world_enu, own.migration_point_world_enu, p.k_mig)
         return cap_speed(reynolds + migration, p.v_max_mps)
 
 
-def parse_variant(key: str) -> tuple[str, float]:
-    for kind in ("near", "far", "rey", "sep", "noise"):
-        if key.startswith(kind):
-            try:
-                return kind, float(key[len(kind) :])
-            except ValueError:
-                break
-    raise ValueError(f"unknown variant {key!r}: nearS, farS, reyS, sepS or noiseS with S a number")
+def parse_variant(key: str) -> dict[str, float]:
+    """`near1.5` -> {"near": 1.5}; `sep1.15+near2` -> {"sep": 1.15, "near": 2.0}."""
+    terms: dict[str, float] = {}
+    for term in key.split("+"):
+        kind = next((k for k in ("near", "far", "rey", "sep", "noise") if term.startswith(k)), "")
+        try:
+            value = float(term[len(kind) :]) if kind else None
+        except ValueError:
+            value = None
+        if value is None or kind in terms:
+            raise ValueError(
+                f"unknown variant {key!r}: nearS, farS, reyS, sepS or noiseS with S a number, "
+                "joined by '+', each kind once"
+            )
+        terms[kind] = value
+    return terms
 
 
 def fly_one(variant: str, seed: int, experiment: str = "opposing") -> dict[str, Any]:
@@ -126,8 +135,7 @@ def fly_one(variant: str, seed: int, experiment: str = "opposing") -> dict[str, 
     if variant == "teacher":
         controller: Any = TeacherController(params)
     else:
-        kind, value = parse_variant(variant)
-        controller = StudentController(params, kind, value, seed)
+        controller = StudentController(params, parse_variant(variant), seed)
     log = fly(scenario, controller)
     s = summarize(log)
     step = int(np.nanargmin(log.d_min_m))

@@ -40,17 +40,17 @@ def test_an_exact_student_is_the_teacher_and_a_weak_one_holds_closer() -> None:
     teacher = flocking_command(pos, goal, params).final
     obs = _observation(pos, goal)
     for kind in ("near", "far", "rey", "sep"):
-        exact = cs.StudentController(params, kind, 1.0, seed=0).command(obs)
+        exact = cs.StudentController(params, {kind: 1.0}, seed=0).command(obs)
         np.testing.assert_allclose(exact, teacher, atol=1e-12)
     # `sepS` is the law with the separation gain k_sep x S
-    cautious = cs.StudentController(params, "sep", 1.3, seed=0).command(obs)
+    cautious = cs.StudentController(params, {"sep": 1.3}, seed=0).command(obs)
     stronger = FlockingParams(v_max_mps=50.0, k_sep=params.k_sep * 1.3)
     np.testing.assert_allclose(cautious, flocking_command(pos, goal, stronger).final, atol=1e-12)
-    weak = cs.StudentController(params, "near", 0.5, seed=0).command(obs)
+    weak = cs.StudentController(params, {"near": 0.5}, seed=0).command(obs)
     away = (pos[0] - pos[1]) / np.linalg.norm(pos[0] - pos[1])
     # agent 0 flees agent 1 less when the near pair weighs half
     assert weak[0] @ away < teacher[0] @ away - 0.1
-    noisy = cs.StudentController(params, "noise", 0.2, seed=4)
+    noisy = cs.StudentController(params, {"noise": 0.2}, seed=4)
     first = noisy.command(obs)
     noisy.reset(len(pos))
     np.testing.assert_array_equal(noisy.command(obs), first)  # seeded: a run is repeatable
@@ -58,12 +58,42 @@ def test_an_exact_student_is_the_teacher_and_a_weak_one_holds_closer() -> None:
 
 
 def test_variant_names_are_checked() -> None:
-    assert cs.parse_variant("far0.9") == ("far", 0.9)
-    assert cs.parse_variant("sep1.2") == ("sep", 1.2)
+    assert cs.parse_variant("far0.9") == {"far": 0.9}
+    assert cs.parse_variant("sep1.15+near2") == {"sep": 1.15, "near": 2.0}
     with pytest.raises(ValueError, match="unknown variant 'fast1.1'"):
         cs.parse_variant("fast1.1")
     with pytest.raises(ValueError, match="unknown variant 'near'"):
         cs.parse_variant("near")
+    with pytest.raises(ValueError, match="each kind once"):
+        cs.parse_variant("near2+near3")
+
+
+def test_a_joined_student_flies_the_law_training_teaches() -> None:
+    """`sep1.15+near2` answers what `swarm-sim train --separation-scale 1.15
+    --near-separation-scale 2` labels, agent by agent (identity attitude: body = world)."""
+    from sim_harness.learning.relabel import cautious_targets
+
+    params = FlockingParams(v_max_mps=50.0)
+    pos, _ = _flock(seed=11, n=7)
+    pos[3] = pos[5] + [0.5, 0.4, -0.2]  # a near pair
+    pos[6] = pos[5] + [-0.6, 0.3, 0.1]  # and a third drone near one of them
+    goal = np.tile([30.0, 0.0, 5.0], (len(pos), 1))
+    n = len(pos)
+    meta = {
+        "run": np.zeros(n, dtype=np.int64),
+        "time_s": np.zeros(n),
+        "agent": np.arange(n),
+        "pos_world_enu": pos,
+        "q_world_body": np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+    }
+    stored = flocking_command(pos, None, params).reynolds
+    taught = cautious_targets(stored, meta, 1.15, params, near_scale=2.0)
+    student = cs.StudentController(params, cs.parse_variant("sep1.15+near2"), seed=0)
+    migration = flocking_command(pos, goal, params).migration
+    np.testing.assert_allclose(
+        student.command(_observation(pos, goal)) - migration, taught, atol=1e-5
+    )
+    assert np.abs(taught - stored).max() > 0.1  # the near drones' labels did change
 
 
 def test_the_three_parts_sum_to_the_teachers_body_frame_command() -> None:
