@@ -1,11 +1,12 @@
 """What learning a more cautious law costs on the paper's R², and how well a policy learned it.
 
     python benchmarks/cautious_law_fit.py --dataset data/quick-aa-s1 [--scales 1.1,1.15,1.2] \
-        [--near 2] [--model models/swarm_cnn.pt --model other.pt ...] [--split test]
+        [--near 2 [--near-m 1.5]] [--model models/swarm_cnn.pt --model other.pt ...] [--split test]
 
 `swarm-sim train --separation-scale S` teaches the flocking law with k_sep x S, and
-`--near-separation-scale C` that law with the neighbours within 1.2 m weighing C in its separation
-sum (`sim_harness.learning.relabel`; here `--near C`, applied to every S); the bar still
+`--near-separation-scale C` that law with the neighbours within 1.2 m (`--near-separation-radius`)
+weighing C in its separation sum (`sim_harness.learning.relabel`; here `--near C` and `--near-m`,
+applied to every S); the bar still
 judges the policy's R² against the paper's own labels (S = 1). Two things decide that R², and
 this script separates them on one split:
 
@@ -33,7 +34,7 @@ from sim_harness.dataset.spec import DatasetSpec
 from sim_harness.dataset.store import open_dataset
 from sim_harness.experiments.machine import machine
 from sim_harness.learning.evaluate import regression_metrics
-from sim_harness.learning.relabel import cautious_targets
+from sim_harness.learning.relabel import NEAR_M, cautious_targets
 
 
 def r2_per_axis(pred: np.ndarray, target: np.ndarray) -> dict[str, float | None]:
@@ -64,6 +65,9 @@ def main() -> None:
     parser.add_argument(
         "--near", type=float, default=1.0, help="close-range boost C of every law (default 1)"
     )
+    parser.add_argument(
+        "--near-m", type=float, default=NEAR_M, help=f"the boost's reach, m (default {NEAR_M})"
+    )
     parser.add_argument("--model", type=Path, action="append", default=[], help="repeatable")
     parser.add_argument("--out", type=Path, default=RESULTS / "cautious_law_fit.json")
     args = parser.parse_args()
@@ -74,10 +78,20 @@ def main() -> None:
     stored = np.asarray(split.targets, dtype=np.float64)
     if not 0.5 <= args.near <= 4.0:
         raise SystemExit(f"--near: C must be in [0.5, 4], got {args.near:g}")
+    if not 0.5 <= args.near_m <= 5.0:
+        raise SystemExit(f"--near-m: must be in [0.5, 5] m, got {args.near_m:g}")
     suffix = "" if args.near == 1.0 else f"+near{args.near:g}"
+    if args.near != 1.0 and args.near_m != NEAR_M:
+        suffix += f"@{args.near_m:g}m"
     laws = {
         f"{s:g}{suffix}": cautious_targets(
-            stored, split.meta, s, params, what=str(args.dataset), near_scale=args.near
+            stored,
+            split.meta,
+            s,
+            params,
+            what=str(args.dataset),
+            near_scale=args.near,
+            near_m=args.near_m,
         ).astype(np.float64)
         for s in scales
     }

@@ -10,10 +10,10 @@ that, with no camera and no network: "students" that are the teacher's law with 
 error in the part the CNN learns (the Reynolds term, separation + cohesion), flown on training
 seeds (the evaluation seeds stay unseen) against the exact teacher on the same seeds:
 
-- `nearS`: every neighbour within 1.2 m weighs S in the separation sum (S < 1: a close
+- `nearS`: every neighbour within 1.2 m (`--near-m`) weighs S in the separation sum (S < 1: a close
   neighbour answered too weakly, the CNN's error at a cube-map corner; S > 1: too strongly, or
   a close-range boost, the law `swarm-sim train --near-separation-scale S` teaches);
-- `farS`: every neighbour beyond 1.2 m weighs S in the separation sum (the approach before the
+- `farS`: every neighbour beyond that weighs S in the separation sum (the approach before the
   crossing answered too weakly or too strongly);
 - `reyS`: the whole Reynolds term times S (a policy that shrinks, or inflates, every answer);
 - `sepS`: the whole separation term times S, at every distance (the law with the separation gain
@@ -23,7 +23,7 @@ seeds (the evaluation seeds stay unseen) against the exact teacher on the same s
 
 Terms join with `+`: `sep1.15+near2` is the law `swarm-sim train --separation-scale 1.15
 --near-separation-scale 2` teaches (the whole separation sum, its close-range boost included,
-times 1.15).
+times 1.15); with `--near-m 1.5`, the law `--near-separation-radius 1.5` teaches.
 
 Each keeps the migration term and the speed cap exact, as the CNN's flight does. Per variant:
 seeds whose closest pair is within 0.1 m of the teacher's (the bar's criterion), the mean
@@ -74,10 +74,13 @@ class StudentController:
     name = "student"
     senses = frozenset({SENSE_NEIGHBOURS})
 
-    def __init__(self, params: FlockingParams, terms: dict[str, float], seed: int) -> None:
+    def __init__(
+        self, params: FlockingParams, terms: dict[str, float], seed: int, near_m: float = NEAR_M
+    ) -> None:
         self.params = params
         self.terms = terms
         self.seed = seed
+        self.near_m = near_m
         self._rng = np.random.default_rng(seed)
 
     def reset(self, n_agents: int) -> None:
@@ -94,7 +97,7 @@ class StudentController:
         valid = np.asarray(sensing.perceived, dtype=bool)
         offsets = np.asarray(sensing.offsets_world_enu, dtype=float)
         separation, cohesion, count = reynolds_from_offsets(offsets, valid, p)
-        near = np.linalg.norm(np.where(valid[..., None], offsets, 0.0), axis=-1) < NEAR_M
+        near = np.linalg.norm(np.where(valid[..., None], offsets, 0.0), axis=-1) < self.near_m
         for kind, subset in (("near", valid & near), ("far", valid & ~near)):
             if kind in t:
                 # the separation of the neighbours in range, averaged over all of them as the law
@@ -127,15 +130,18 @@ def parse_variant(key: str) -> dict[str, float]:
     return terms
 
 
-def fly_one(variant: str, seed: int, experiment: str = "opposing") -> dict[str, Any]:
-    """One flight of an experiment (default opposing goals, N = 9) by the teacher or a student."""
+def fly_one(
+    variant: str, seed: int, experiment: str = "opposing", near_m: float = NEAR_M
+) -> dict[str, Any]:
+    """One flight of an experiment (default opposing goals, N = 9) by the teacher or a student
+    whose near and far terms part at `near_m`."""
     config = EXPERIMENTS[experiment].scenario_config(seed)
     params = config.flocking
     scenario = build_scenario(config)
     if variant == "teacher":
         controller: Any = TeacherController(params)
     else:
-        controller = StudentController(params, parse_variant(variant), seed)
+        controller = StudentController(params, parse_variant(variant), seed, near_m)
     log = fly(scenario, controller)
     s = summarize(log)
     step = int(np.nanargmin(log.d_min_m))
@@ -185,6 +191,12 @@ def main() -> None:
         "--experiment", default="opposing", choices=tuple(EXPERIMENTS), help="(default opposing)"
     )
     parser.add_argument(
+        "--near-m",
+        type=float,
+        default=NEAR_M,
+        help=f"where near ends and far begins, metres (default {NEAR_M})",
+    )
+    parser.add_argument(
         "--out", type=Path, default=None, help="default results/crossing_sensitivity[_EXP].json"
     )
     args = parser.parse_args()
@@ -197,13 +209,17 @@ def main() -> None:
             parse_variant(key)
         except ValueError as exc:
             parser.error(f"--variants: {exc}")
+    if not 0.5 <= args.near_m <= 5.0:
+        parser.error(f"--near-m must be in 0.5-5 m, got {args.near_m}")
     if args.workers < 1:
         parser.error(f"--workers must be >= 1, got {args.workers}")
     start = time.perf_counter()
     order = ["teacher", *keys]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         futures = {
-            (v, s): pool.submit(fly_one, v, s, args.experiment) for v in order for s in seeds
+            (v, s): pool.submit(fly_one, v, s, args.experiment, args.near_m)
+            for v in order
+            for s in seeds
         }
         flights = {v: [futures[(v, s)].result() for s in seeds] for v in order}
     teacher = flights["teacher"]
@@ -229,7 +245,7 @@ def main() -> None:
         "benchmark": "crossing_sensitivity",
         "experiment": args.experiment,
         "seeds": [seeds[0], seeds[-1]],
-        "near_m": NEAR_M,
+        "near_m": args.near_m,
         "pair_margin_m": PAIR_MARGIN_M,
         "teacher": {"order_mean": t_order, "under_1m": t_under, "flights": teacher},
         "variants": results,

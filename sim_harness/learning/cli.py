@@ -161,9 +161,18 @@ def add_learning_commands(sub: Any) -> None:
         type=float,
         default=1.0,
         metavar="C",
-        help="and the neighbours closer than 1.2 m weigh C in the separation sum: a close-range "
-        "boost where the paper's law comes under 1 m (a flock contracting onto its migration "
-        "point); labels recomputed as for --separation-scale (default 1; range 0.5-4)",
+        help="and the neighbours closer than --near-separation-radius weigh C in the separation "
+        "sum: a close-range boost where the paper's law comes under 1 m (a flock contracting "
+        "onto its migration point); labels recomputed as for --separation-scale (default 1; "
+        "range 0.5-4)",
+    )
+    t.add_argument(
+        "--near-separation-radius",
+        type=float,
+        default=1.2,
+        metavar="M",
+        help="the close-range boost's reach: neighbours closer than M metres (default 1.2; range "
+        "0.5-5)",
     )
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(handler=_train)
@@ -246,6 +255,7 @@ def _train(args: argparse.Namespace) -> int:
         lr_schedule=args.lr_schedule,
         separation_scale=args.separation_scale,
         near_separation_scale=args.near_separation_scale,
+        near_separation_radius_m=args.near_separation_radius,
         progress=not args.no_progress,
         command=command_line(),
     )

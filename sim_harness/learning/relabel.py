@@ -4,14 +4,14 @@ Every dataset stores, for every sample, the teacher's Reynolds command in the bo
 label) and the drone's world position and attitude at the moment its image was taken; the samples
 of one run at one time step are the whole flock. From those positions the separation term can be
 computed again, so a training run can learn the flocking law with its separation gain scaled by
-S (k_sep x S), and with the neighbours closer than `NEAR_M` weighing C in the separation sum
-(a close-range boost), without drawing one image again:
+S (k_sep x S), and with the neighbours closer than R (default `NEAR_M`) weighing C in the
+separation sum (a close-range boost), without drawing one image again:
 
     label' = label + (S - 1) * R_body_world * separation(positions)
                    + S * (C - 1) * R_body_world * separation_near(positions)
 
-where separation_near is the separation term's share from the neighbours within `NEAR_M`
-(still averaged over all neighbours, as the law averages).
+where separation_near is the separation term's share from the neighbours within R (still
+averaged over all neighbours, as the law averages).
 
 Why a student would learn a law other than the one it is judged against: the CNN's errors act on
 the flock like noise on the command, and the closest pair of a crossing is what such noise costs
@@ -44,15 +44,15 @@ from sim_harness.learning.batches import JoinedSplit, SplitArrays, StackedImages
 from sim_harness.learning.flock_loss import flock_ids
 
 POSITION_COLUMNS = ("pos_world_enu", "q_world_body")
-NEAR_M = 1.2  # the close-range boost weighs the neighbours closer than this
+NEAR_M = 1.2  # by default the close-range boost weighs the neighbours closer than this
 # the stored label is float32, the positions too: the law recomputed from them agrees to ~1e-5
 LABEL_TOLERANCE_MPS = 2e-3
 
 
 def flock_separation_body(
-    meta: Mapping[str, NDArray[Any]], params: FlockingParams
+    meta: Mapping[str, NDArray[Any]], params: FlockingParams, near_m: float = NEAR_M
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """(separation, its share from the neighbours within `NEAR_M`, separation + cohesion) of
+    """(separation, its share from the neighbours within `near_m`, separation + cohesion) of
     every sample, body FLU m/s, from the positions of its flock (the rows of one run at one time
     step, as `flock_ids` groups them)."""
     missing = [c for c in POSITION_COLUMNS if c not in meta]
@@ -79,7 +79,7 @@ def flock_separation_body(
         offsets = pairwise_offsets_batched(pos[rows]).reshape(-1, size, 3)
         valid = np.tile(~np.eye(size, dtype=bool), (len(first), 1))
         sep, coh, count = reynolds_from_offsets(offsets, valid, params)
-        near = valid & (np.linalg.norm(offsets, axis=-1) < NEAR_M)
+        near = valid & (np.linalg.norm(offsets, axis=-1) < near_m)
         part, _, n_near = reynolds_from_offsets(offsets, near, params)
         # `part` is averaged over the near neighbours; the law averages over all of them
         share = np.divide(n_near, count, out=np.zeros(count.shape), where=count > 0)
@@ -107,14 +107,15 @@ def cautious_targets(
     params: FlockingParams | None = None,
     what: str = "the training data",
     near_scale: float = 1.0,
+    near_m: float = NEAR_M,
 ) -> NDArray[np.float32]:
-    """The labels of the law with k_sep x `separation_scale` and the neighbours within `NEAR_M`
+    """The labels of the law with k_sep x `separation_scale` and the neighbours within `near_m`
     weighing `near_scale` in its separation sum (float32 (n, 3), body FLU m/s).
 
     Raises ConfigError when the stored labels are not the unscaled law's of the stored positions.
     """
     params = params or FlockingParams()
-    sep_body, near_body, rey_body = flock_separation_body(meta, params)
+    sep_body, near_body, rey_body = flock_separation_body(meta, params, near_m)
     stored = np.asarray(targets, dtype=np.float64)
     err = np.abs(rey_body - stored).max(axis=1)
     worst = int(np.argmax(err)) if len(err) else 0
@@ -133,15 +134,19 @@ def cautious_targets(
 
 
 def relabelled(
-    split: SplitArrays, separation_scale: float, what: str, near_scale: float = 1.0
+    split: SplitArrays,
+    separation_scale: float,
+    what: str,
+    near_scale: float = 1.0,
+    near_m: float = NEAR_M,
 ) -> JoinedSplit:
     """`split` with the labels of the law whose separation gain is scaled by `separation_scale`,
-    its neighbours within `NEAR_M` by `near_scale` more (its images shared, not copied); `what`
+    its neighbours within `near_m` by `near_scale` more (its images shared, not copied); `what`
     names the split in an error."""
     images = split.images
     if not isinstance(images, StackedImages):
         images = StackedImages([np.asarray(images)])
     targets = cautious_targets(
-        split.targets, split.meta, separation_scale, what=what, near_scale=near_scale
+        split.targets, split.meta, separation_scale, what=what, near_scale=near_scale, near_m=near_m
     )
     return JoinedSplit(images=images, targets=targets, meta=split.meta)

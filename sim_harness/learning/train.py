@@ -68,7 +68,7 @@ from sim_harness.learning.flock_loss import (
 )
 from sim_harness.learning.model import DroNet, build_model
 from sim_harness.learning.optimization import Plateau, cosine_lr_at, make_optimizer, make_scheduler
-from sim_harness.learning.relabel import NEAR_M, relabelled
+from sim_harness.learning.relabel import relabelled
 from sim_harness.learning.sample_weights import SampleWeighting
 from sim_harness.learning.symmetry import augment_with_views
 from sim_harness.learning.train_config import TrainConfig, TrainResult, resolve_device
@@ -218,12 +218,16 @@ def train(config: TrainConfig) -> TrainResult:
         )
     val_split: SplitArrays = dataset.split("val")
     if config.separation_scale != 1.0 or config.near_separation_scale != 1.0:
-        scales = (config.separation_scale, config.near_separation_scale)
-        train_split = relabelled(train_split, scales[0], "the training data", scales[1])
-        val_split = relabelled(val_split, scales[0], f"{config.dataset}'s val split", scales[1])
+        law = (
+            config.separation_scale,
+            config.near_separation_scale,
+            config.near_separation_radius_m,
+        )
+        train_split = relabelled(train_split, law[0], "the training data", law[1], law[2])
+        val_split = relabelled(val_split, law[0], f"{config.dataset}'s val split", law[1], law[2])
         log.info(
             "labels: the flocking law with k_sep x %g, neighbours within %g m x %g more",
-            *(scales[0], NEAR_M, scales[1]),
+            *(law[0], law[2], law[1]),
         )
     return train_on(config, dataset.manifest, train_split, val_split)
 

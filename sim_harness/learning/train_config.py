@@ -79,9 +79,10 @@ class TrainConfig:
     # learn the flocking law with its separation gain times this (`sim_harness.learning.relabel`:
     # every label, validation's too, recomputed from the stored positions); 1: the recorded labels
     separation_scale: float = 1.0
-    # and the neighbours closer than `relabel.NEAR_M` (1.2 m) weigh this in its separation sum:
+    # and the neighbours closer than `near_separation_radius_m` weigh this in its separation sum:
     # a close-range boost (1: the law's own weighting)
     near_separation_scale: float = 1.0
+    near_separation_radius_m: float = 1.2  # `relabel.NEAR_M`
 
     def __post_init__(self) -> None:
         require_int_range("max_epochs", self.max_epochs, 1)
@@ -122,6 +123,7 @@ class TrainConfig:
             require_range("weight_flock", self.weight_flock, 0.0, 100.0, low_inclusive=False)
         require_range("separation_scale", self.separation_scale, 0.5, 2.0)
         require_range("near_separation_scale", self.near_separation_scale, 0.5, 4.0)
+        require_range("near_separation_radius_m", self.near_separation_radius_m, 0.5, 5.0)
         if self.lr_schedule not in LR_SCHEDULES:
             raise ConfigError(
                 f"lr_schedule: {self.lr_schedule!r} is not one of {', '.join(LR_SCHEDULES)}"

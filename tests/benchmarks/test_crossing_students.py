@@ -87,13 +87,17 @@ def test_a_joined_student_flies_the_law_training_teaches() -> None:
         "q_world_body": np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
     }
     stored = flocking_command(pos, None, params).reynolds
-    taught = cautious_targets(stored, meta, 1.15, params, near_scale=2.0)
-    student = cs.StudentController(params, cs.parse_variant("sep1.15+near2"), seed=0)
     migration = flocking_command(pos, goal, params).migration
-    np.testing.assert_allclose(
-        student.command(_observation(pos, goal)) - migration, taught, atol=1e-5
-    )
-    assert np.abs(taught - stored).max() > 0.1  # the near drones' labels did change
+    taught = {}
+    for radius in (1.2, 2.0):  # the default reach, and `--near-separation-radius 2`
+        taught[radius] = cautious_targets(stored, meta, 1.15, params, near_scale=2.0, near_m=radius)
+        variant = cs.parse_variant("sep1.15+near2")
+        student = cs.StudentController(params, variant, seed=0, near_m=radius)
+        np.testing.assert_allclose(
+            student.command(_observation(pos, goal)) - migration, taught[radius], atol=1e-5
+        )
+    assert np.abs(taught[1.2] - stored).max() > 0.1  # the near drones' labels did change
+    assert np.abs(taught[2.0] - taught[1.2]).max() > 0.05  # and the reach matters
 
 
 def test_the_three_parts_sum_to_the_teachers_body_frame_command() -> None:

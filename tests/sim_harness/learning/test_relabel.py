@@ -99,15 +99,17 @@ def test_a_run_learns_and_validates_on_the_cautious_labels(smoke_dataset, tmp_pa
     assert saved["config"]["separation_scale"] == 1.3
 
 
-def _boosted_law_body(pos: np.ndarray, rot: np.ndarray, scale: float, near: float) -> np.ndarray:
-    """Agent by agent, the separation sum with neighbours within 1.2 m weighing `near`, all x
+def _boosted_law_body(
+    pos: np.ndarray, rot: np.ndarray, scale: float, near: float, radius: float = 1.2
+) -> np.ndarray:
+    """Agent by agent, the separation sum with neighbours within `radius` weighing `near`, all x
     `scale`, plus cohesion, in each agent's body frame: an independent statement of the law."""
     p = FlockingParams()
     out = np.zeros_like(pos)
     for i in range(len(pos)):
         r = np.delete(pos - pos[i], i, axis=0)
         d = np.linalg.norm(r, axis=1)
-        w = np.where(d < 1.2, near, 1.0)
+        w = np.where(d < radius, near, 1.0)
         sep = -scale * p.k_sep / len(r) * (w[:, None] * r / d[:, None] ** 2).sum(axis=0)
         coh = p.k_coh / len(r) * r.sum(axis=0)
         out[i] = rot[i].T @ (sep + coh)
@@ -139,3 +141,27 @@ def test_the_close_range_boost_weighs_the_near_neighbours_only() -> None:
 def test_a_close_range_boost_out_of_range_names_the_field(tmp_path) -> None:
     with pytest.raises(ConfigError, match="near_separation_scale"):
         TrainConfig(dataset=tmp_path, out_dir=tmp_path, near_separation_scale=5.0)
+
+
+def test_the_close_range_boost_reaches_as_far_as_its_radius() -> None:
+    labels, meta = _flocks((9, 3, 12, 9), seed=8)
+    pos = meta["pos_world_enu"].astype(np.float64)
+    rot = quat_to_rotmat(meta["q_world_body"].astype(np.float64))
+    wide = cautious_targets(labels, meta, 1.1, near_scale=2.0, near_m=2.5)
+    start = 0
+    for n in (9, 3, 12, 9):
+        rows = slice(start, start + n)
+        expected = _boosted_law_body(pos[rows], rot[rows], 1.1, 2.0, radius=2.5)
+        np.testing.assert_allclose(wide[rows], expected, atol=1e-4)
+        start += n
+    # a neighbour between 1.2 m and 2.5 m counts in the wide boost and not in the default one
+    d = np.linalg.norm(pos[:9, None] - pos[None, :9], axis=-1) + 10 * np.eye(9)
+    between = np.flatnonzero((d.min(axis=1) >= 1.2) & (d.min(axis=1) < 2.5))
+    assert len(between) > 0
+    narrow = cautious_targets(labels, meta, 1.1, near_scale=2.0)
+    assert np.abs(wide[between] - narrow[between]).max() > 0.05
+
+
+def test_a_close_range_radius_out_of_range_names_the_field(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="near_separation_radius_m"):
+        TrainConfig(dataset=tmp_path, out_dir=tmp_path, near_separation_radius_m=0.1)
