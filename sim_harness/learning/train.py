@@ -218,16 +218,18 @@ def train(config: TrainConfig) -> TrainResult:
         )
     val_split: SplitArrays = dataset.split("val")
     if config.separation_scale != 1.0 or config.near_separation_scale != 1.0:
-        law = (
+        scale, near, reach = (
             config.separation_scale,
             config.near_separation_scale,
             config.near_separation_radius_m,
         )
-        train_split = relabelled(train_split, law[0], "the training data", law[1], law[2])
-        val_split = relabelled(val_split, law[0], f"{config.dataset}'s val split", law[1], law[2])
+        train_split = relabelled(train_split, scale, "the training data", near, reach)
+        val_split = relabelled(val_split, scale, f"{config.dataset}'s val split", near, reach)
         log.info(
             "labels: the flocking law with k_sep x %g, neighbours within %g m x %g more",
-            *(law[0], law[2], law[1]),
+            scale,
+            reach,
+            near,
         )
     return train_on(config, dataset.manifest, train_split, val_split)
 
