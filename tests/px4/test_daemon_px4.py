@@ -145,12 +145,11 @@ def test_a_stalled_camera_hovers_then_holds(shipped: Any, daemon_run: Any) -> No
     gcs.wait_until(lambda: gcs.mode is Px4Mode.HOLD, 2.0 + 0.3 + HEARTBEAT_SLACK_S + 1.0, "HOLD")
     held = gcs.mode_changes(stalled)[-1].t_s - stalled
     assert 2.0 <= held <= 2.0 + 0.3 + HEARTBEAT_SLACK_S + 0.5
-    # Holding: the flight (> 0.8 m/s) has stopped. PX4's Hold can still move the vehicle slowly
-    # towards its hold point: 0.53 m/s in the 0.3 s after the switch once and 0.26 m/s over the
-    # second after under two busy loops, 0.23 m/s once unloaded; judged over that second.
-    gcs.wait_until(lambda: math.hypot(*mean_velocity(gcs, 0.3)) < 0.5, 3.0, "Hold slows down")
-    time.sleep(1.0)
-    assert math.hypot(*mean_velocity(gcs, 1.0)) < 0.5
+    # Holding: the flight (> 0.8 m/s) comes to rest. PX4's Hold first moves the vehicle back
+    # towards its hold point (0.53 m/s in the 0.3 s after the switch once, 0.26-0.53 m/s over
+    # the second after, beside other work), then settles there: judged on a whole second's mean
+    # speed, with time for the return.
+    gcs.wait_until(lambda: math.hypot(*mean_velocity(gcs, 1.0)) < 0.3, 8.0, "Hold at rest")
     assert gcs.mode is Px4Mode.HOLD
     run.signal(signal.SIGTERM)
     assert run.wait() == 0, run.output()
