@@ -53,19 +53,30 @@ def _seconds(t: float) -> str:
     return f"{t:.1f} s" if math.isfinite(t) else "never (half or more stalled)"
 
 
+def _metres(value: float, threshold: float, sign: str = "") -> str:
+    """A distance in cm, or in mm where cm would round it onto the other side of the criterion's
+    threshold (0.998 m under a 1 m bound reads "0.998 m", never "1.00 m")."""
+    text = f"{value:{sign}.2f}"
+    if (float(text) >= threshold) != (value >= threshold):
+        text = f"{value:{sign}.3f}"
+    return f"{text} m"
+
+
 def _no_collision(label: str, cnn: list[RunRecord], teacher: list[RunRecord]) -> BarCheck:
     """The CNN's verdict; the detail adds the teacher's on the same seeds, which the verdict
     does not use (a crowded spawn can bring even the teacher's flock under 1 m)."""
     hit = [r for r in cnn if not r.summary["collision_free"]]
     lowest = min(r.summary["d_min_m"] for r in cnn)
-    detail = f"{len(cnn) - len(hit)}/{len(cnn)} runs clear; lowest pair {lowest:.2f} m"
+    detail = (
+        f"{len(cnn) - len(hit)}/{len(cnn)} runs clear; lowest pair {_metres(lowest, COLLISION_M)}"
+    )
     if hit:
-        closest = (f"{r.seed} ({r.summary['d_min_m']:.2f} m)" for r in hit)
+        closest = (f"{r.seed} ({_metres(r.summary['d_min_m'], COLLISION_M)})" for r in hit)
         detail += "; under 1 m: " + ", ".join(closest)
     clear = sum(bool(r.summary["collision_free"]) for r in teacher)
     detail += (
         f" (teacher, same seeds: {clear}/{len(teacher)} clear, lowest "
-        f"{min(r.summary['d_min_m'] for r in teacher):.2f} m)"
+        f"{_metres(min(r.summary['d_min_m'] for r in teacher), COLLISION_M)})"
     )
     return BarCheck(f"{label}: no pair under {COLLISION_M:g} m in any run", not hit, detail)
 
@@ -117,7 +128,7 @@ def _common(cnn: list[RunRecord], teacher: list[RunRecord]) -> list[BarCheck]:
         BarCheck(
             f"{label}: lowest closest pair >= {COMMON_LOWEST_PAIR_M:g} m",
             lowest >= COMMON_LOWEST_PAIR_M,
-            f"lowest {lowest:.2f} m; median of the runs' closest pairs "
+            f"lowest {_metres(lowest, COMMON_LOWEST_PAIR_M)}; median of the runs' closest pairs "
             f"{statistics.median(r.summary['d_min_m'] for r in cnn):.2f} m (teacher "
             f"{statistics.median(r.summary['d_min_m'] for r in teacher):.2f} m)",
         ),
@@ -138,7 +149,8 @@ def _opposing(cnn: list[RunRecord], teacher: list[RunRecord]) -> list[BarCheck]:
         if r.seed in by_seed and r.summary["d_min_m"] < by_seed[r.seed] - OPPOSING_PAIR_MARGIN_M
     ]
     worst = min(r.summary["d_min_m"] - by_seed[r.seed] for r in cnn if r.seed in by_seed)
-    pair_detail = f"{len(cnn) - len(below)}/{len(cnn)} seeds within; worst {worst:+.2f} m"
+    worst_text = _metres(worst, -OPPOSING_PAIR_MARGIN_M, "+")
+    pair_detail = f"{len(cnn) - len(below)}/{len(cnn)} seeds within; worst {worst_text}"
     if below:
         pair_detail += "; below: " + ", ".join(f"{s} ({a:.2f} vs {b:.2f} m)" for s, a, b in below)
     return [

@@ -115,6 +115,27 @@ def test_a_collision_verdict_is_the_cnns_and_shows_the_teachers_on_the_same_seed
     assert not check.passed and "1003 (0.95 m) (teacher, same seeds: 4/4 clear" in check.detail
 
 
+def test_a_distance_on_the_wrong_side_of_a_bound_never_reads_as_the_bound(tiny_log) -> None:
+    """0.998 m fails "no pair under 1 m": rounded to cm it would read 1.00 m, so it reads in mm."""
+    hair = [{}] * 3 + [{"collision_free": False, "d_min_m": 0.998}]
+    check = bar_checks(suite(tiny_log, "vmax4", hair))[0]
+    assert not check.passed
+    assert "lowest pair 0.998 m; under 1 m: 1003 (0.998 m)" in check.detail
+    common = [{"d_min_m": 1.0496}] + [{}] * 3
+    lowest = bar_checks(suite(tiny_log, "common", common))[1]
+    assert not lowest.passed and "lowest 1.050 m;" in lowest.detail
+    teacher = [{"d_min_m": 1.5}] * 4
+    inside = [{"d_min_m": 1.5}] * 3 + [{"d_min_m": 1.5 - 0.1004}]  # 0.1004 m below: fails
+    margin = next(
+        c
+        for c in bar_checks(suite(tiny_log, "opposing", inside, teacher))
+        if "below the teacher's" in c.name
+    )
+    assert not margin.passed and "worst -0.100 m" in margin.detail
+    clear = [{"d_min_m": 1.234}] * 4  # away from every bound: cm, as before
+    assert "lowest pair 1.23 m" in bar_checks(suite(tiny_log, "vmax4", clear))[0].detail
+
+
 def test_faster_flock_and_no_goal_have_their_own_criteria(tiny_log) -> None:
     assert list(verdicts(suite(tiny_log, "vmax4", [{}] * 4))) == [
         "no pair under 1 m in any run",
