@@ -70,6 +70,20 @@ def mean_velocity(gcs: GroundStation, seconds: float) -> tuple[float, float]:
     )
 
 
+def heartbeats_since(gcs: GroundStation, t_s: float) -> list[tuple[float, Any, int]]:
+    """(seconds after `t_s`, mode, MAV_STATE) of each heartbeat since: for failure messages."""
+    return [(round(m.t_s - t_s, 1), m.mode, m.system_status) for m in gcs.modes_since(t_s)]
+
+
+def heard(gcs: GroundStation, condition: Any, timeout_s: float, what: str, since_s: float) -> None:
+    """Wait for `condition`; on a miss, fail with what PX4 reported since `since_s`."""
+    try:
+        gcs.wait_until(condition, timeout_s, what)
+    except GroundStationError as error:
+        seen = (heartbeats_since(gcs, since_s), gcs.texts_since(since_s))
+        raise AssertionError((str(error), gcs.height_above_home_m, seen)) from error
+
+
 def angle_between(a_rad: float, b_rad: float) -> float:
     return abs((a_rad - b_rad + math.pi) % (2 * math.pi) - math.pi)
 
@@ -205,30 +219,38 @@ def test_no_engagement_during_a_px4_failsafe(shipped: Any, daemon_run: Any) -> N
     CRITICAL); the daemon does not stream, so not even the pilot's switch can engage."""
     vehicle = shipped
     gcs = vehicle.gcs
+    held = time.monotonic()
     assert gcs.set_mode(Px4Mode.HOLD) is MavResult.ACCEPTED  # the pilot's mode, nothing pending
+    # The pilot's switch ends any failsafe an earlier test left (an offboard loss when the
+    # SIGTERMed daemon's last setpoint came late): a plain Hold heartbeat before the breach, so
+    # that a CRITICAL one after it is this breach's.
+    heard(
+        gcs,
+        lambda: any(m.mode is Px4Mode.HOLD and not m.failsafe for m in gcs.modes_since(held)),
+        2 * HEARTBEAT_SLACK_S + 1.0,
+        "a Hold heartbeat without a failsafe",
+        held,
+    )
     fence = gcs.get_param("GF_MAX_VER_DIST")
     assert fence is not None
     try:
         breached = time.monotonic()
         gcs.set_param("GF_MAX_VER_DIST", 2.0, 9)  # the vehicle hovers about 5 m up: a breach
-        # This breach's failsafe, not an earlier test's: its text and a CRITICAL heartbeat.
-        gcs.wait_until(
-            lambda: (
-                any("Failsafe activated" in t for t in gcs.texts_since(breached))
-                and any(m.failsafe for m in gcs.modes_since(breached))
-            ),
-            5.0 + HEARTBEAT_SLACK_S,
-            "failsafe",
+        # PX4 took about 1 s here (its geofence check, then the next 1 Hz heartbeat); the
+        # margin is for a loaded machine. On a miss, say what PX4 did report.
+        heard(
+            gcs,
+            lambda: any(m.failsafe for m in gcs.modes_since(breached)),
+            5.0 + 2 * HEARTBEAT_SLACK_S,
+            "the breach's failsafe",
+            held,
         )
         run = daemon_run(vehicle)
         logged(run, "PX4 is in a failsafe")
         tried = time.monotonic()
         gcs.set_mode(Px4Mode.OFFBOARD)  # PX4 refuses: it has no setpoints to switch to
         time.sleep(HEARTBEAT_SLACK_S + 1.0)
-        heartbeats = [
-            (round(m.t_s - tried, 1), m.mode, m.system_status) for m in gcs.modes_since(breached)
-        ]
-        seen = (heartbeats, gcs.texts_since(breached), run.health_lines())
+        seen = (heartbeats_since(gcs, tried), gcs.texts_since(breached), run.health_lines())
         assert all(m.mode is not Px4Mode.OFFBOARD for m in gcs.modes_since(tried)), seen
         assert all(m.failsafe for m in gcs.modes_since(tried)), seen  # PX4 still holds
         assert "ready" not in run.health_events(), seen
