@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import signal
 import time
+from collections.abc import Callable
 from typing import Any
 
 from sim_harness.hil.px4_gcs import GroundStation, GroundStationError
@@ -75,7 +76,9 @@ def heartbeats_since(gcs: GroundStation, t_s: float) -> list[tuple[float, Any, i
     return [(round(m.t_s - t_s, 1), m.mode, m.system_status) for m in gcs.modes_since(t_s)]
 
 
-def heard(gcs: GroundStation, condition: Any, timeout_s: float, what: str, since_s: float) -> None:
+def heard(
+    gcs: GroundStation, condition: Callable[[], bool], timeout_s: float, what: str, since_s: float
+) -> None:
     """Wait for `condition`; on a miss, fail with what PX4 reported since `since_s`."""
     try:
         gcs.wait_until(condition, timeout_s, what)
@@ -250,7 +253,7 @@ def test_no_engagement_during_a_px4_failsafe(shipped: Any, daemon_run: Any) -> N
         tried = time.monotonic()
         gcs.set_mode(Px4Mode.OFFBOARD)  # PX4 refuses: it has no setpoints to switch to
         time.sleep(HEARTBEAT_SLACK_S + 1.0)
-        seen = (heartbeats_since(gcs, tried), gcs.texts_since(breached), run.health_lines())
+        seen = (heartbeats_since(gcs, breached), gcs.texts_since(breached), run.health_lines())
         assert all(m.mode is not Px4Mode.OFFBOARD for m in gcs.modes_since(tried)), seen
         assert all(m.failsafe for m in gcs.modes_since(tried)), seen  # PX4 still holds
         assert "ready" not in run.health_events(), seen
