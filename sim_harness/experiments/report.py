@@ -214,12 +214,21 @@ def _training_lines(training: dict[str, Any]) -> list[str]:
     """Every training command that led to the model, first to last, when its metadata has them.
 
     `training.chain` (recorded by `swarm-sim export`) lists them; an older export records only its
-    last command, which the report then says.
+    last command, which the report then says. A model averaged or ensembled from networks with a
+    common ancestor records that ancestor's commands once per network: each is listed once, where
+    it first appears.
     """
     chain = training.get("chain")
     if isinstance(chain, list) and chain:
+        unique = list(dict.fromkeys(str(command) for command in chain))
         lines = ["- Training commands, first to last:"]
-        lines += [f"  {k}. `{command}`" for k, command in enumerate(chain, start=1)]
+        lines += [f"  {k}. `{command}`" for k, command in enumerate(unique, start=1)]
+        if len(unique) < len(chain):
+            shared = len(chain) - len(unique)
+            lines.append(
+                f"  ({shared} more recorded by the histories this model merges, each the same"
+                " command as one above, are listed once)"
+            )
         if not training.get("chain_complete", True):
             lines.append("  (the steps before the first one are not recorded)")
         return lines

@@ -214,6 +214,15 @@ def test_model_lines_print_counts_as_numbers_per_split_and_the_whole_training_ch
     assert f"  1. `{chain[0]}`" in text and f"  2. `{chain[1]}`" in text
 
 
+def test_model_lines_list_a_command_shared_by_merged_histories_once() -> None:
+    shared = ["swarm-sim train --out runs/train/a", "swarm-sim train --out runs/train/b"]
+    chain = [*shared, "swarm-sim average x", *shared, "swarm-sim ensemble y"]
+    text = _model_text({"training": {"chain": chain, "command": "swarm-sim ensemble y"}})
+    listed = [line for line in text.splitlines() if line.startswith("  ") and "`" in line]
+    assert [line.split("`")[1] for line in listed] == [*shared, chain[2], chain[-1]]
+    assert "2 more recorded by the histories this model merges" in text
+
+
 def test_model_lines_say_when_only_the_last_training_command_is_recorded() -> None:
     training = {"command": "swarm-sim train --init-from models/m.pt", "config": {"init_from": "m"}}
     text = _model_text({"training": training})
