@@ -52,9 +52,12 @@ class RunData:
         return int(self.images.shape[0])
 
 
-def termination(spec: DatasetSpec, pos: FloatArray, mig: FloatArray, t_s: float) -> str | None:
-    """Why the run ends in this state, or None (rules in `spec`'s docstring order)."""
-    if np.min(np.linalg.norm(pos - mig, axis=1)) < spec.arrival_radius_m:
+def termination(
+    spec: DatasetSpec, pos: FloatArray, mig: FloatArray, t_s: float, arrival: bool = True
+) -> str | None:
+    """Why the run ends in this state, or None (rules in `spec`'s docstring order); `arrival`
+    False leaves the arrival rule out (an aggregation round that flies on through the arrival)."""
+    if arrival and np.min(np.linalg.norm(pos - mig, axis=1)) < spec.arrival_radius_m:
         return "arrival"
     d = np.linalg.norm(pairwise_offsets(pos), axis=-1)
     iu = np.triu_indices(len(pos), k=1)

@@ -15,6 +15,12 @@ state it visits with the teacher's Reynolds command, exactly as `generate` label
   of 1 m (`default_rules`), so the near misses the CNN flies into are labelled too. A round can
   widen the dispersion rule (up to r_max) and fly longer, to label the stretched flocks of a
   CNN whose cohesion is too weak (`--dispersion-m 12 --max-run-s 30`).
+- The dataset's arrival rule (an agent within 1 m of its migration point) ends a flight about
+  0.3-0.5 s before the flock arrives as the experiments define it (each goal group's centroid
+  within 2 m), and that is where a flock converging on its point bunches: the faster flock's and
+  N = 12's closest pairs fall in those last steps (`benchmarks/teacher_envelope.py`). A round flown
+  with `after_arrival_s` (`--after-arrival-s S`) drops that rule and flies on through the flock's
+  arrival for S more seconds, so the bunching is labelled too.
 
 The result is a normal dataset folder (same store, manifest and `open_dataset`); its manifest
 says `"kind": "aggregated"` and names the policy (SHA-256), the experiments and the seeds. Run k
@@ -29,6 +35,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,7 +43,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.validation import require_int_range
+from companion.validation import require_int_range, require_range
 from sim_harness.dataset.generate import check_or_write_spec, finalize, store_run
 from sim_harness.dataset.runs import (
     RunData,
@@ -65,12 +72,13 @@ from sim_harness.experiments.worker_policy import PolicySource, adopt, release, 
 from sim_harness.sim.executor import ClusterChoice, Task, TaskPool, announce, open_pool
 from sim_harness.sim.progress import ProgressBar, progress_bar
 from sim_harness.sim.renderers import make_renderer, warn_if_trained_elsewhere
-from sim_harness.sim.rollout import fly
-from sim_harness.sim.scenarios import build_scenario
+from sim_harness.sim.rollout import fly, has_arrived
+from sim_harness.sim.scenarios import Scenario, build_scenario
 
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
+StopRule = Callable[[FloatArray, float], str | None]
 # Opposing-goal flights end early (dispersion), so they are flown twice as often.
 DEFAULT_EXPERIMENTS: tuple[str, ...] = ("common", "opposing", "opposing", "self-propelled")
 
@@ -96,11 +104,16 @@ class AggregateConfig:
     seed_base: int = 0
     workers: int = 1
     rules: DatasetSpec = field(default_factory=default_rules)  # stop rules, flocking gains
+    # None: a flight ends at the dataset's arrival rule (rounds 1-57); S >= 0: it flies on until
+    # S seconds after the flock's arrival (the experiments' rule), the dataset's rule dropped
+    after_arrival_s: float | None = None
 
     def __post_init__(self) -> None:
         require_int_range("aggregate.runs", self.runs, 10, 100_000)
         require_int_range("aggregate.workers", self.workers, 1, 256)
         require_int_range("aggregate.seed_base", self.seed_base, 0, EVAL_SEED_BASE - 1)
+        if self.after_arrival_s is not None:
+            require_range("aggregate.after_arrival_s", self.after_arrival_s, 0.0, 60.0)
         if self.seed_base + self.runs > EVAL_SEED_BASE:
             raise ConfigError(
                 f"aggregate.runs: seeds {self.seed_base}..{self.seed_base + self.runs - 1} reach "
@@ -129,7 +142,7 @@ class AggregateConfig:
         return self.experiments[k % len(self.experiments)]
 
     def describe(self, model_sha256: str) -> dict[str, Any]:
-        return {
+        described: dict[str, Any] = {
             "kind": "aggregated",
             "policy": {"path": str(self.model_path), "sha256": model_sha256},
             "experiments": list(self.experiments),
@@ -137,6 +150,9 @@ class AggregateConfig:
             "seed_base": self.seed_base,
             "splits": "run k: val if k % 10 == 8, test if k % 10 == 9, else train",
         }
+        if self.after_arrival_s is not None:  # absent for the rounds flown before it existed
+            described["after_arrival_s"] = self.after_arrival_s
+        return described
 
 
 class _Recorder:
@@ -177,6 +193,24 @@ class _Recorder:
         return setpoint
 
 
+def stop_rule(config: AggregateConfig, scenario: Scenario) -> StopRule:
+    """When one of the round's flights ends (`fly`'s `stop_when`): the dataset's rules, or with
+    `after_arrival_s` those rules less the arrival, and S seconds after the flock's arrival."""
+    rules, mig, fly_on = config.rules, scenario.migration_points, config.after_arrival_s
+    arrived_at: list[float] = []  # when the flock first arrived (the experiments' rule)
+
+    def stop_when(pos: FloatArray, t_s: float) -> str | None:
+        if fly_on is None:
+            return termination(rules, pos, mig, t_s)
+        if not arrived_at and has_arrived(scenario, pos):
+            arrived_at.append(t_s)
+        if arrived_at and t_s >= arrived_at[0] + fly_on - 1e-9:
+            return "arrival"
+        return termination(rules, pos, mig, t_s, arrival=False)
+
+    return stop_when
+
+
 def fly_and_record(config: AggregateConfig, k: int, policy: BatchPolicy) -> RunData:
     """Run k of the round: the CNN flies its scenario; every visited state becomes samples."""
     experiment = EXPERIMENTS[config.experiment_of(k)]
@@ -186,12 +220,15 @@ def fly_and_record(config: AggregateConfig, k: int, policy: BatchPolicy) -> RunD
     law = VisionControlConfig.from_flocking(scenario_config.flocking)
     recorder = _Recorder(VisionController(policy, law, rules.rates.control_dt_s), rules)
     mig = scenario.migration_points
-
-    def stop_when(pos: FloatArray, t_s: float) -> str | None:
-        return termination(rules, pos, mig, t_s)
-
     renderer = make_renderer(rules.renderer)
-    flight = fly(scenario, recorder, rules.rates, renderer=renderer, stop_when=stop_when)
+    flight = fly(
+        scenario,
+        recorder,
+        rules.rates,
+        renderer=renderer,
+        stop_when=stop_rule(config, scenario),
+        stop_at_arrival=config.after_arrival_s is None,
+    )
     n_steps, n = len(recorder.images), scenario.n_agents
     reason = flight.stop_reason if flight.stop_reason != "arrived" else "arrival"
     cmd = recorder.rows.pop("cmd")

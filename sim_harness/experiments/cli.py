@@ -266,6 +266,15 @@ def add_aggregate_command(dsub: Any) -> None:
     a.add_argument(
         "--max-run-s", type=float, default=15.0, help="stop a flight after this long (default 15)"
     )
+    a.add_argument(
+        "--after-arrival-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="fly on through the flock's arrival (each goal group's centroid within 2 m) for S "
+        "more seconds instead of stopping when an agent comes within 1 m of its point (the "
+        "dataset's rule, default): the bunching of a flock converging on its point is labelled",
+    )
     a.add_argument("--workers", type=int, default=None, help="flights in parallel (default 1)")
     a.add_argument("--no-progress", action="store_true")
     add_renderer_option(a, follows_model=True)
@@ -282,6 +291,7 @@ def _aggregate(args: argparse.Namespace) -> int:
         experiments=tuple(e.strip() for e in args.experiments.split(",") if e.strip()),
         seed_base=args.seed_base,
         workers=1 if args.workers is None else args.workers,
+        after_arrival_s=args.after_arrival_s,
         rules=dataclasses.replace(
             default_rules(args.dispersion_m, args.max_run_s),
             renderer=args.renderer or renderer_of_model(model),

@@ -112,6 +112,7 @@ def fly(
     stop_when: Callable[[FloatArray, float], str | None] | None = None,
     progress_label: str | None = None,
     progress_lines: bool | None = None,
+    stop_at_arrival: bool = True,
 ) -> FlightLog:
     """Run one flight; returns its log (use `summarize` for the paper's numbers).
 
@@ -119,7 +120,8 @@ def fly(
     instead when stderr is not a terminal or `progress_lines` (see `sim_harness.sim.progress`).
 
     `stop_when(positions, t_s)`, checked after every control step, ends the flight early when it
-    returns a reason (which becomes the log's `stop_reason`); arrival always ends it.
+    returns a reason (which becomes the log's `stop_reason`); arrival ends it too, unless
+    `stop_at_arrival` is False (then only `stop_when` and the time limit do).
 
     A controller that declares the `"cameras"` sense gets every agent's 64x384 image each control
     step, rendered with `renderer` (default: a `PyBulletRenderer`); no other controller pays for it.
@@ -197,7 +199,7 @@ def fly(
             world.set_poses(s.pos_world_enu, vehicle.q_world_body)
             stage["physics"] += time.perf_counter() - t0
             bar.update()
-            if has_arrived(scenario, s.pos_world_enu):
+            if stop_at_arrival and has_arrived(scenario, s.pos_world_enu):
                 stop_reason = "arrived"
                 break
             if stop_when is not None:

@@ -1,5 +1,6 @@
 """Dataset aggregation: the CNN flies, the teacher labels what it visits; fine-tuning on it."""
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -13,11 +14,20 @@ from sim_harness.dataset.runs import teacher_targets
 from sim_harness.dataset.spec import DatasetSpec
 from sim_harness.dataset.store import open_dataset
 from sim_harness.errors import ConfigError
-from sim_harness.experiments.aggregate import AggregateConfig, aggregate, default_rules
+from sim_harness.experiments.aggregate import (
+    AggregateConfig,
+    aggregate,
+    default_rules,
+    stop_rule,
+)
+from sim_harness.experiments.suites import EXPERIMENTS
 from sim_harness.learning.batches import subset
 from sim_harness.learning.checkpoint import load_checkpoint
 from sim_harness.learning.export import load_eager_model
 from sim_harness.learning.train import TrainConfig, train, validation_loss
+from sim_harness.sim.controllers import TeacherController
+from sim_harness.sim.rollout import FlightLog, fly, has_arrived
+from sim_harness.sim.scenarios import Scenario, build_scenario
 
 
 def short_rules() -> DatasetSpec:
@@ -87,11 +97,48 @@ def test_resuming_is_a_no_op_and_other_settings_are_refused(aggregated) -> None:
         ({"experiments": ("common", "loop")}, "aggregate.experiments"),
         ({"runs": 3}, "aggregate.runs"),
         ({"rules": default_rules(dispersion_m=20.0)}, "aggregate.dispersion_m"),
+        ({"after_arrival_s": -0.5}, "aggregate.after_arrival_s"),
     ],
 )
 def test_bad_settings_name_the_field(overrides, field) -> None:
     with pytest.raises(ConfigError, match=field):
         AggregateConfig(**overrides)
+
+
+def _teacher_flight(config: AggregateConfig, seed: int = 300) -> tuple[FlightLog, Scenario]:
+    """The faster flock flown by the teacher (no cameras: quick) under a round's stop rule."""
+    scenario_config = EXPERIMENTS["vmax4"].scenario_config(seed)
+    scenario = build_scenario(scenario_config)
+    log = fly(
+        scenario,
+        TeacherController(scenario_config.flocking),
+        stop_when=stop_rule(config, scenario),
+        stop_at_arrival=config.after_arrival_s is None,
+    )
+    return log, scenario
+
+
+def test_after_arrival_labels_the_bunching_the_datasets_arrival_rule_cuts_off() -> None:
+    cut, scenario = _teacher_flight(AggregateConfig())
+    assert cut.stop_reason == "arrival"  # an agent within 1 m of the point ...
+    assert not has_arrived(scenario, cut.pos_world_enu[-1])  # ... before the flock arrives
+    on, _ = _teacher_flight(AggregateConfig(after_arrival_s=0.3, rules=default_rules(max_run_s=40)))
+    arrived = [has_arrived(scenario, p) for p in on.pos_world_enu]
+    t_arrival = on.time_s[arrived.index(True)]
+    assert on.stop_reason == "arrival"
+    assert on.time_s[-1] == pytest.approx(t_arrival + 0.3, abs=0.11)  # within a control step
+    # the flock converging on its point comes closer than anything the cut flight recorded
+    assert np.nanmin(on.d_min_m) < np.nanmin(cut.d_min_m) - 0.1
+    # the other rules still hold: a pair under the collision rule ends the flight
+    tight = AggregateConfig(after_arrival_s=5.0, rules=default_rules(max_run_s=40.0))
+    tight = dataclasses.replace(tight, rules=dataclasses.replace(tight.rules, collision_m=1.2))
+    log, _ = _teacher_flight(tight)
+    assert log.stop_reason == "collision" and np.nanmin(log.d_min_m) < 1.2
+
+
+def test_the_round_records_its_after_arrival_setting_only_when_set() -> None:
+    assert "after_arrival_s" not in AggregateConfig().describe("sha")  # rounds 1-57 resume as-is
+    assert AggregateConfig(after_arrival_s=2.0).describe("sha")["after_arrival_s"] == 2.0
 
 
 def test_default_rules_label_near_misses_but_stay_in_the_dataset_domain() -> None:
@@ -109,6 +156,15 @@ def test_the_cli_refuses_a_dispersion_beyond_r_max_before_writing(tmp_path, caps
     out = tmp_path / "a"
     assert main(["dataset", "aggregate", "--out", str(out), "--dispersion-m", "21"]) == 2
     assert "aggregate.dispersion_m must be < the perception radius r_max" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_the_cli_refuses_a_negative_after_arrival_before_writing(tmp_path, capsys) -> None:
+    from sim_harness.cli import main
+
+    out = tmp_path / "a"
+    assert main(["dataset", "aggregate", "--out", str(out), "--after-arrival-s", "-1"]) == 2
+    assert "aggregate.after_arrival_s: -1 is outside the allowed range" in capsys.readouterr().err
     assert not out.exists()
 
 
