@@ -194,19 +194,19 @@ class _Recorder:
 
 
 def stop_rule(config: AggregateConfig, scenario: Scenario) -> StopRule:
-    """When one of the round's flights ends (`fly`'s `stop_when`): the dataset's rules, or with
-    `after_arrival_s` those rules less the arrival, and S seconds after the flock's arrival."""
+    """When one of the round's flights ends (`fly`'s `stop_when`, flown with `stop_at_arrival`
+    False: the rule owns the arrival): the dataset's rules or the flock's arrival, whichever comes
+    first; with `after_arrival_s`, the rules less the dataset's arrival, and S seconds after the
+    flock's arrival."""
     rules, mig, fly_on = config.rules, scenario.migration_points, config.after_arrival_s
     arrived_at: list[float] = []  # when the flock first arrived (the experiments' rule)
 
     def stop_when(pos: FloatArray, t_s: float) -> str | None:
-        if fly_on is None:
-            return termination(rules, pos, mig, t_s)
         if not arrived_at and has_arrived(scenario, pos):
             arrived_at.append(t_s)
-        if arrived_at and t_s >= arrived_at[0] + fly_on - 1e-9:
+        if arrived_at and t_s >= arrived_at[0] + (fly_on or 0.0) - 1e-9:
             return "arrival"
-        return termination(rules, pos, mig, t_s, arrival=False)
+        return termination(rules, pos, mig, t_s, arrival=fly_on is None)
 
     return stop_when
 
@@ -227,10 +227,9 @@ def fly_and_record(config: AggregateConfig, k: int, policy: BatchPolicy) -> RunD
         rules.rates,
         renderer=renderer,
         stop_when=stop_rule(config, scenario),
-        stop_at_arrival=config.after_arrival_s is None,
+        stop_at_arrival=False,
     )
     n_steps, n = len(recorder.images), scenario.n_agents
-    reason = flight.stop_reason if flight.stop_reason != "arrived" else "arrival"
     cmd = recorder.rows.pop("cmd")
     arrays = sample_arrays(recorder.rows, n_steps, n, np.concatenate(cmd))
     stages = flight.stage_time_s
@@ -243,7 +242,7 @@ def fly_and_record(config: AggregateConfig, k: int, policy: BatchPolicy) -> RunD
     return RunData(
         config.split_of(k),
         k,
-        reason,
+        flight.stop_reason,
         np.asarray(mig[0], dtype=np.float64),
         np.concatenate(recorder.images),
         arrays,

@@ -113,7 +113,7 @@ def _teacher_flight(config: AggregateConfig, seed: int = 300) -> tuple[FlightLog
         scenario,
         TeacherController(scenario_config.flocking),
         stop_when=stop_rule(config, scenario),
-        stop_at_arrival=config.after_arrival_s is None,
+        stop_at_arrival=False,
     )
     return log, scenario
 
