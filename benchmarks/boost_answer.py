@@ -36,15 +36,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from close_range_answer import nearest_offset_body
 from cnn_latency import RESULTS, write_report
 from command_shrinkage import policy_answers
 
-from companion.flocking import FlockingParams, migration_velocity, reynolds_from_offsets
-from companion.frames import quat_to_rotmat
+from companion.flocking import FlockingParams, migration_velocity
 from sim_harness.dataset.store import open_dataset
 from sim_harness.experiments.machine import machine
 from sim_harness.experiments.suites import EXPERIMENTS
-from sim_harness.learning.relabel import cautious_targets
+from sim_harness.learning.relabel import cautious_targets, separation_parts
 from sim_harness.sim.scenarios import build_scenario
 
 BINS_M = (0.8, 1.0, 1.1, 1.2, 1.3, 1.35, 1.4, 1.5, 1.6)
@@ -57,31 +57,15 @@ def taught_law_world(
     `scale`, the neighbours within `near_m` weighing `near_scale` in the separation sum (the
     labels `learning.relabel.cautious_targets` trains on)."""
     offsets = pos[None, :, :] - pos[:, None, :]  # r_ij = p_j - p_i
-    valid = ~np.eye(len(pos), dtype=bool)
-    sep, coh, count = reynolds_from_offsets(offsets, valid, params)
-    near = valid & (np.linalg.norm(offsets, axis=-1) < near_m)
-    part, _, n_near = reynolds_from_offsets(offsets, near, params)
-    share = np.divide(n_near, count, out=np.zeros(count.shape), where=count > 0)[:, None]
-    return scale * sep + coh + scale * (near_scale - 1.0) * share * part
+    sep, near, rey = separation_parts(offsets, ~np.eye(len(pos), dtype=bool), params, near_m)
+    return rey + (scale - 1.0) * sep + scale * (near_scale - 1.0) * near
 
 
 def away_from_nearest_body(meta: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
     """For each sample of `rows`, the unit vector (body FLU) from its nearest neighbour to it;
     the split's samples must be every agent at every step (as stored)."""
-    agent = np.asarray(meta["agent"], dtype=np.intp)
-    pos = np.asarray(meta["pos_world_enu"], dtype=np.float64)
-    q = np.asarray(meta["q_world_body"], dtype=np.float64)
-    starts = np.append(np.flatnonzero(agent == 0), len(agent))
-    out = np.empty((len(rows), 3))
-    for k, row in enumerate(rows):
-        s = int(np.searchsorted(starts, row, side="right")) - 1
-        first, end = int(starts[s]), int(starts[s + 1])
-        offsets = pos[first:end] - pos[row]
-        dist = np.linalg.norm(offsets, axis=1)
-        dist[row - first] = np.inf
-        away = quat_to_rotmat(q[row]).T @ -offsets[int(np.argmin(dist))]
-        out[k] = away / np.linalg.norm(away)
-    return out
+    offsets = nearest_offset_body(meta, rows)
+    return -offsets / np.linalg.norm(offsets, axis=1, keepdims=True)
 
 
 def binned(

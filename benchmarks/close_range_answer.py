@@ -37,23 +37,29 @@ BINS_M = (0.0, 0.6, 0.8, 1.0, 1.2, 1.6, float("inf"))
 FACENESS_BINS = (0.5, 0.7, 0.8, 0.9, 1.01)
 
 
-def nearest_faceness(meta: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
-    """For each sample of `rows`, the largest component of its nearest neighbour's unit direction
-    in its body frame; the split's samples must be every agent at every step (as stored)."""
+def nearest_offset_body(meta: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
+    """For each sample of `rows`, the offset (body FLU, m) to its nearest neighbour: (K, 3); the
+    split's samples must be every agent at every step (as stored)."""
     agent = np.asarray(meta["agent"], dtype=np.intp)
     pos = np.asarray(meta["pos_world_enu"], dtype=np.float64)
     q = np.asarray(meta["q_world_body"], dtype=np.float64)
     starts = np.append(np.flatnonzero(agent == 0), len(agent))  # each step's first row, and the end
-    out = np.empty(len(rows))
+    out = np.empty((len(rows), 3))
     for k, row in enumerate(rows):
         s = int(np.searchsorted(starts, row, side="right")) - 1
         first, end = int(starts[s]), int(starts[s + 1])
         offsets = pos[first:end] - pos[row]
         dist = np.linalg.norm(offsets, axis=1)
         dist[row - first] = np.inf
-        body = quat_to_rotmat(q[row]).T @ offsets[int(np.argmin(dist))]
-        out[k] = np.abs(body).max() / np.linalg.norm(body)
+        out[k] = quat_to_rotmat(q[row]).T @ offsets[int(np.argmin(dist))]
     return out
+
+
+def nearest_faceness(meta: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
+    """For each sample of `rows`, the largest component of its nearest neighbour's unit direction
+    in its body frame; the split's samples must be every agent at every step (as stored)."""
+    body = nearest_offset_body(meta, rows)
+    return np.abs(body).max(axis=1) / np.linalg.norm(body, axis=1)
 
 
 def main() -> None:

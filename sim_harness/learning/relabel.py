@@ -78,14 +78,10 @@ def flock_separation_body(
         rows = first[:, None] + np.arange(size)[None, :]  # (F, size)
         offsets = pairwise_offsets_batched(pos[rows]).reshape(-1, size, 3)
         valid = np.tile(~np.eye(size, dtype=bool), (len(first), 1))
-        sep, coh, count = reynolds_from_offsets(offsets, valid, params)
-        near = valid & (np.linalg.norm(offsets, axis=-1) < near_m)
-        part, _, n_near = reynolds_from_offsets(offsets, near, params)
-        # `part` is averaged over the near neighbours; the law averages over all of them
-        share = np.divide(n_near, count, out=np.zeros(count.shape), where=count > 0)
+        sep, near, rey = separation_parts(offsets, valid, params, near_m)
         sep_world[rows.ravel()] = sep
-        near_world[rows.ravel()] = share[:, None] * part
-        rey_world[rows.ravel()] = sep + coh
+        near_world[rows.ravel()] = near
+        rey_world[rows.ravel()] = rey
     to_world = quat_to_rotmat(np.asarray(meta["q_world_body"], dtype=np.float64))
     to_body = np.transpose(to_world, (0, 2, 1))
     return (
@@ -93,6 +89,19 @@ def flock_separation_body(
         np.einsum("nij,nj->ni", to_body, near_world),
         np.einsum("nij,nj->ni", to_body, rey_world),
     )
+
+
+def separation_parts(
+    offsets: NDArray[np.float64], valid: NDArray[np.bool_], params: FlockingParams, near_m: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """(separation, its share from the neighbours within `near_m`, separation + cohesion) (N, 3)
+    in the offsets' frame, from `reynolds_from_offsets`' (N, M, 3) offsets and (N, M) mask."""
+    sep, coh, count = reynolds_from_offsets(offsets, valid, params)
+    near = valid & (np.linalg.norm(offsets, axis=-1) < near_m)
+    part, _, n_near = reynolds_from_offsets(offsets, near, params)
+    # `part` is averaged over the near neighbours; the law averages over all of them
+    share = np.divide(n_near, count, out=np.zeros(count.shape), where=count > 0)
+    return sep, share[:, None] * part, sep + coh
 
 
 def pairwise_offsets_batched(pos: NDArray[np.float64]) -> NDArray[np.float64]:
