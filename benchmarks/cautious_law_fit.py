@@ -1,12 +1,14 @@
 """What learning a more cautious law costs on the paper's R², and how well a policy learned it.
 
     python benchmarks/cautious_law_fit.py --dataset data/quick-aa-s1 [--scales 1.1,1.15,1.2] \
-        [--near 2 [--near-m 1.5]] [--model models/swarm_cnn.pt --model other.pt ...] [--split test]
+        [--near 2 [--near-m 1.5] [--near-ramp-m 0.3]] [--scale-reach-m 4] \
+        [--model models/swarm_cnn.pt --model other.pt ...] [--split test]
 
 `swarm-sim train --separation-scale S` teaches the flocking law with k_sep x S, and
 `--near-separation-scale C` that law with the neighbours within 1.2 m (`--near-separation-radius`)
-weighing C in its separation sum (`sim_harness.learning.relabel`; here `--near C` and `--near-m`,
-applied to every S); the bar still
+weighing C in its separation sum, ramped in over `--near-separation-ramp` metres
+(`sim_harness.learning.relabel`; here `--near C`, `--near-m` and `--near-ramp-m`, applied to every
+S); the bar still
 judges the policy's R² against the paper's own labels (S = 1). Two things decide that R², and
 this script separates them on one split:
 
@@ -34,7 +36,7 @@ from sim_harness.dataset.spec import DatasetSpec
 from sim_harness.dataset.store import open_dataset
 from sim_harness.experiments.machine import machine
 from sim_harness.learning.evaluate import regression_metrics
-from sim_harness.learning.relabel import NEAR_M, cautious_targets
+from sim_harness.learning.relabel import NEAR_M, RAMP_M, cautious_targets
 
 
 def r2_per_axis(pred: np.ndarray, target: np.ndarray) -> dict[str, float | None]:
@@ -68,6 +70,18 @@ def main() -> None:
     parser.add_argument(
         "--near-m", type=float, default=NEAR_M, help=f"the boost's reach, m (default {NEAR_M})"
     )
+    parser.add_argument(
+        "--near-ramp-m",
+        type=float,
+        default=RAMP_M,
+        help="the boost ramps in over this many metres inside its reach (default 0: a step)",
+    )
+    parser.add_argument(
+        "--scale-reach-m",
+        type=float,
+        default=None,
+        help="k_sep x S for the neighbours within this many metres only (default: every one)",
+    )
     parser.add_argument("--model", type=Path, action="append", default=[], help="repeatable")
     parser.add_argument("--out", type=Path, default=RESULTS / "cautious_law_fit.json")
     args = parser.parse_args()
@@ -80,9 +94,17 @@ def main() -> None:
         raise SystemExit(f"--near: C must be in [0.5, 4], got {args.near:g}")
     if not 0.5 <= args.near_m <= 5.0:
         raise SystemExit(f"--near-m: must be in [0.5, 5] m, got {args.near_m:g}")
+    if not 0.0 <= args.near_ramp_m < args.near_m:
+        raise SystemExit(f"--near-ramp-m: must be in [0, --near-m), got {args.near_ramp_m:g}")
     suffix = "" if args.near == 1.0 else f"+near{args.near:g}"
     if args.near != 1.0 and args.near_m != NEAR_M:
         suffix += f"@{args.near_m:g}m"
+    if args.near != 1.0 and args.near_ramp_m > 0.0:
+        suffix += f"~ramp{args.near_ramp_m:g}m"
+    if args.scale_reach_m is not None:
+        if args.scale_reach_m < args.near_m:
+            raise SystemExit("--scale-reach-m: must reach at least --near-m")
+        suffix += f" within {args.scale_reach_m:g}m"
     laws = {
         f"{s:g}{suffix}": cautious_targets(
             stored,
@@ -92,6 +114,8 @@ def main() -> None:
             what=str(args.dataset),
             near_scale=args.near,
             near_m=args.near_m,
+            ramp_m=args.near_ramp_m,
+            reach_m=args.scale_reach_m,
         ).astype(np.float64)
         for s in scales
     }

@@ -23,7 +23,10 @@ seeds (the evaluation seeds stay unseen) against the exact teacher on the same s
 
 Terms join with `+`: `sep1.15+near2` is the law `swarm-sim train --separation-scale 1.15
 --near-separation-scale 2` teaches (the whole separation sum, its close-range boost included,
-times 1.15); with `--near-m 1.5`, the law `--near-separation-radius 1.5` teaches.
+times 1.15); with `--near-m 1.5`, the law `--near-separation-radius 1.5` teaches; with
+`--near-ramp-m W`, the near term ramps in over W metres inside `--near-m` (a neighbour's share of
+it rising linearly from 0 at `--near-m` to 1 at `--near-m` - W, the far term taking the rest),
+the law `--near-separation-ramp W` teaches.
 
 Each keeps the migration term and the speed cap exact, as the CNN's flight does. Per variant:
 seeds whose closest pair is within 0.1 m of the teacher's (the bar's criterion), the mean
@@ -56,7 +59,7 @@ from companion.flocking import (
 )
 from sim_harness.experiments.machine import machine
 from sim_harness.experiments.suites import EXPERIMENTS
-from sim_harness.learning.relabel import NEAR_M
+from sim_harness.learning.relabel import NEAR_M, RAMP_M, separation_parts
 from sim_harness.sim.controllers import SENSE_NEIGHBOURS, Observation, TeacherController
 from sim_harness.sim.rollout import fly, summarize
 from sim_harness.sim.scenarios import build_scenario
@@ -75,12 +78,18 @@ class StudentController:
     senses = frozenset({SENSE_NEIGHBOURS})
 
     def __init__(
-        self, params: FlockingParams, terms: dict[str, float], seed: int, near_m: float = NEAR_M
+        self,
+        params: FlockingParams,
+        terms: dict[str, float],
+        seed: int,
+        near_m: float = NEAR_M,
+        ramp_m: float = RAMP_M,
     ) -> None:
         self.params = params
         self.terms = terms
         self.seed = seed
         self.near_m = near_m
+        self.ramp_m = ramp_m
         self._rng = np.random.default_rng(seed)
 
     def reset(self, n_agents: int) -> None:
@@ -96,14 +105,14 @@ class StudentController:
         t = self.terms
         valid = np.asarray(sensing.perceived, dtype=bool)
         offsets = np.asarray(sensing.offsets_world_enu, dtype=float)
-        separation, cohesion, count = reynolds_from_offsets(offsets, valid, p)
-        near = np.linalg.norm(np.where(valid[..., None], offsets, 0.0), axis=-1) < self.near_m
-        for kind, subset in (("near", valid & near), ("far", valid & ~near)):
+        separation, cohesion, _ = reynolds_from_offsets(offsets, valid, p)
+        # the separation of the neighbours in range (ramped in), averaged over all of them as the
+        # law averages, and the rest
+        _, near_part, _ = separation_parts(offsets, valid, p, self.near_m, self.ramp_m)
+        parts = {"near": near_part, "far": separation - near_part}
+        for kind, part in parts.items():
             if kind in t:
-                # the separation of the neighbours in range, averaged over all of them as the law
-                part, _, n_part = reynolds_from_offsets(offsets, subset, p)
-                share = np.divide(n_part, count, out=np.zeros(count.shape), where=count > 0)
-                separation = separation + (t[kind] - 1.0) * share[:, None] * part
+                separation = separation + (t[kind] - 1.0) * part
         reynolds = t.get("sep", 1.0) * separation + cohesion
         reynolds = t.get("rey", 1.0) * reynolds
         if "noise" in t:
@@ -131,17 +140,21 @@ def parse_variant(key: str) -> dict[str, float]:
 
 
 def fly_one(
-    variant: str, seed: int, experiment: str = "opposing", near_m: float = NEAR_M
+    variant: str,
+    seed: int,
+    experiment: str = "opposing",
+    near_m: float = NEAR_M,
+    ramp_m: float = RAMP_M,
 ) -> dict[str, Any]:
     """One flight of an experiment (default opposing goals, N = 9) by the teacher or a student
-    whose near and far terms part at `near_m`."""
+    whose near and far terms part at `near_m` (ramped over `ramp_m`)."""
     config = EXPERIMENTS[experiment].scenario_config(seed)
     params = config.flocking
     scenario = build_scenario(config)
     if variant == "teacher":
         controller: Any = TeacherController(params)
     else:
-        controller = StudentController(params, parse_variant(variant), seed, near_m)
+        controller = StudentController(params, parse_variant(variant), seed, near_m, ramp_m)
     log = fly(scenario, controller)
     s = summarize(log)
     step = int(np.nanargmin(log.d_min_m))
@@ -197,6 +210,12 @@ def main() -> None:
         help=f"where near ends and far begins, metres (default {NEAR_M})",
     )
     parser.add_argument(
+        "--near-ramp-m",
+        type=float,
+        default=RAMP_M,
+        help="the near term ramps in over this many metres inside --near-m (default 0: a step)",
+    )
+    parser.add_argument(
         "--out", type=Path, default=None, help="default results/crossing_sensitivity[_EXP].json"
     )
     args = parser.parse_args()
@@ -211,13 +230,15 @@ def main() -> None:
             parser.error(f"--variants: {exc}")
     if not 0.5 <= args.near_m <= 5.0:
         parser.error(f"--near-m must be in 0.5-5 m, got {args.near_m}")
+    if not 0.0 <= args.near_ramp_m < args.near_m:
+        parser.error(f"--near-ramp-m must be in [0, --near-m), got {args.near_ramp_m}")
     if args.workers < 1:
         parser.error(f"--workers must be >= 1, got {args.workers}")
     start = time.perf_counter()
     order = ["teacher", *keys]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         futures = {
-            (v, s): pool.submit(fly_one, v, s, args.experiment, args.near_m)
+            (v, s): pool.submit(fly_one, v, s, args.experiment, args.near_m, args.near_ramp_m)
             for v in order
             for s in seeds
         }
@@ -246,6 +267,7 @@ def main() -> None:
         "experiment": args.experiment,
         "seeds": [seeds[0], seeds[-1]],
         "near_m": args.near_m,
+        "near_ramp_m": args.near_ramp_m,
         "pair_margin_m": PAIR_MARGIN_M,
         "teacher": {"order_mean": t_order, "under_1m": t_under, "flights": teacher},
         "variants": results,

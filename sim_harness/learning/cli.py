@@ -174,6 +174,23 @@ def add_learning_commands(sub: Any) -> None:
         help="the close-range boost's reach: neighbours closer than M metres (default 1.2; range "
         "0.5-5)",
     )
+    t.add_argument(
+        "--separation-radius",
+        type=float,
+        default=None,
+        metavar="M",
+        help="k_sep x S for the neighbours closer than M metres only, the paper's law for the "
+        "far ones (default: every neighbour; range 0.5-20, at least --near-separation-radius)",
+    )
+    t.add_argument(
+        "--near-separation-ramp",
+        type=float,
+        default=0.0,
+        metavar="W",
+        help="the boost ramps in over W metres inside its reach: a neighbour's weight rises "
+        "linearly from 1 at the reach to C at the reach - W (default 0: a step at the reach, "
+        "which a network answers blurred; range 0-2, shorter than the reach)",
+    )
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(handler=_train)
 
@@ -256,6 +273,8 @@ def _train(args: argparse.Namespace) -> int:
         separation_scale=args.separation_scale,
         near_separation_scale=args.near_separation_scale,
         near_separation_radius_m=args.near_separation_radius,
+        near_separation_ramp_m=args.near_separation_ramp,
+        separation_radius_m=args.separation_radius,
         progress=not args.no_progress,
         command=command_line(),
     )

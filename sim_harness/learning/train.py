@@ -218,18 +218,23 @@ def train(config: TrainConfig) -> TrainResult:
         )
     val_split: SplitArrays = dataset.split("val")
     if config.separation_scale != 1.0 or config.near_separation_scale != 1.0:
-        scale, near, reach = (
+        scale, near, reach, ramp, scaled = (
             config.separation_scale,
             config.near_separation_scale,
             config.near_separation_radius_m,
+            config.near_separation_ramp_m,
+            config.separation_radius_m,
         )
-        train_split = relabelled(train_split, scale, "the training data", near, reach)
-        val_split = relabelled(val_split, scale, f"{config.dataset}'s val split", near, reach)
+        law = (near, reach, ramp, scaled)
+        train_split = relabelled(train_split, scale, "the training data", *law)
+        val_split = relabelled(val_split, scale, f"{config.dataset}'s val split", *law)
         log.info(
-            "labels: the flocking law with k_sep x %g, neighbours within %g m x %g more",
+            "labels: the flocking law with k_sep x %g%s, neighbours within %g m x %g more%s",
             scale,
+            "" if scaled is None else f" within {scaled:g} m",
             reach,
             near,
+            f" (ramped in over {ramp:g} m)" if ramp > 0 else "",
         )
     return train_on(config, dataset.manifest, train_split, val_split)
 

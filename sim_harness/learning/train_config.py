@@ -83,6 +83,10 @@ class TrainConfig:
     # a close-range boost (1: the law's own weighting)
     near_separation_scale: float = 1.0
     near_separation_radius_m: float = 1.2  # `relabel.NEAR_M`
+    # the boost ramps in over this many metres inside its reach (0: a step at the reach)
+    near_separation_ramp_m: float = 0.0  # `relabel.RAMP_M`
+    # k_sep x separation_scale for the neighbours within this many metres (None: every one)
+    separation_radius_m: float | None = None  # `relabel.SCALE_REACH_M`
 
     def __post_init__(self) -> None:
         require_int_range("max_epochs", self.max_epochs, 1)
@@ -124,6 +128,20 @@ class TrainConfig:
         require_range("separation_scale", self.separation_scale, 0.5, 2.0)
         require_range("near_separation_scale", self.near_separation_scale, 0.5, 4.0)
         require_range("near_separation_radius_m", self.near_separation_radius_m, 0.5, 5.0)
+        require_range("near_separation_ramp_m", self.near_separation_ramp_m, 0.0, 2.0)
+        if self.separation_radius_m is not None:
+            require_range("separation_radius_m", self.separation_radius_m, 0.5, 20.0)
+            if self.separation_radius_m < self.near_separation_radius_m:
+                raise ConfigError(
+                    f"separation_radius_m: {self.separation_radius_m:g} m must reach at least "
+                    f"near_separation_radius_m ({self.near_separation_radius_m:g} m), the "
+                    "boost's reach, which the scale also applies to"
+                )
+        if self.near_separation_ramp_m >= self.near_separation_radius_m:
+            raise ConfigError(
+                f"near_separation_ramp_m: {self.near_separation_ramp_m:g} m must be shorter than "
+                f"near_separation_radius_m ({self.near_separation_radius_m:g} m), the boost's reach"
+            )
         if self.lr_schedule not in LR_SCHEDULES:
             raise ConfigError(
                 f"lr_schedule: {self.lr_schedule!r} is not one of {', '.join(LR_SCHEDULES)}"

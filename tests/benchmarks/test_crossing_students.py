@@ -98,6 +98,13 @@ def test_a_joined_student_flies_the_law_training_teaches() -> None:
         )
     assert np.abs(taught[1.2] - stored).max() > 0.1  # the near drones' labels did change
     assert np.abs(taught[2.0] - taught[1.2]).max() > 0.05  # and the reach matters
+    # `--near-ramp-m 0.5`: the law `--near-separation-ramp 0.5` teaches
+    ramped = cautious_targets(stored, meta, 1.15, params, near_scale=2.0, near_m=1.2, ramp_m=0.5)
+    student = cs.StudentController(params, cs.parse_variant("sep1.15+near2"), 0, 1.2, 0.5)
+    np.testing.assert_allclose(
+        student.command(_observation(pos, goal)) - migration, ramped, atol=1e-5
+    )
+    assert np.abs(ramped - taught[1.2]).max() > 0.05  # the ramp weighs the pairs less
 
 
 def test_the_three_parts_sum_to_the_teachers_body_frame_command() -> None:

@@ -100,17 +100,29 @@ def test_a_run_learns_and_validates_on_the_cautious_labels(smoke_dataset, tmp_pa
 
 
 def _boosted_law_body(
-    pos: np.ndarray, rot: np.ndarray, scale: float, near: float, radius: float = 1.2
+    pos: np.ndarray,
+    rot: np.ndarray,
+    scale: float,
+    near: float,
+    radius: float = 1.2,
+    ramp: float = 0.0,
+    reach: float = np.inf,
 ) -> np.ndarray:
-    """Agent by agent, the separation sum with neighbours within `radius` weighing `near`, all x
-    `scale`, plus cohesion, in each agent's body frame: an independent statement of the law."""
+    """Agent by agent, the separation sum with neighbours within `radius` weighing `near` (the
+    weight rising linearly from 1 at `radius` to `near` at `radius` - `ramp`), those within
+    `reach` x `scale`, plus cohesion, in each agent's body frame: an independent statement of
+    the law."""
     p = FlockingParams()
     out = np.zeros_like(pos)
     for i in range(len(pos)):
         r = np.delete(pos - pos[i], i, axis=0)
         d = np.linalg.norm(r, axis=1)
-        w = np.where(d < radius, near, 1.0)
-        sep = -scale * p.k_sep / len(r) * (w[:, None] * r / d[:, None] ** 2).sum(axis=0)
+        if ramp > 0:
+            w = 1.0 + (near - 1.0) * np.clip((radius - d) / ramp, 0.0, 1.0)
+        else:
+            w = np.where(d < radius, near, 1.0)
+        w = w * np.where(d < reach, scale, 1.0)
+        sep = -p.k_sep / len(r) * (w[:, None] * r / d[:, None] ** 2).sum(axis=0)
         coh = p.k_coh / len(r) * r.sum(axis=0)
         out[i] = rot[i].T @ (sep + coh)
     return out
@@ -165,3 +177,60 @@ def test_the_close_range_boost_reaches_as_far_as_its_radius() -> None:
 def test_a_close_range_radius_out_of_range_names_the_field(tmp_path) -> None:
     with pytest.raises(ConfigError, match="near_separation_radius_m"):
         TrainConfig(dataset=tmp_path, out_dir=tmp_path, near_separation_radius_m=0.1)
+
+
+def test_a_ramped_boost_rises_linearly_inside_its_reach() -> None:
+    labels, meta = _flocks((9, 3, 12, 9), seed=8)
+    pos = meta["pos_world_enu"].astype(np.float64)
+    rot = quat_to_rotmat(meta["q_world_body"].astype(np.float64))
+    ramped = cautious_targets(labels, meta, 1.1, near_scale=3.0, near_m=2.0, ramp_m=0.8)
+    start = 0
+    for n in (9, 3, 12, 9):
+        rows = slice(start, start + n)
+        expected = _boosted_law_body(pos[rows], rot[rows], 1.1, 3.0, radius=2.0, ramp=0.8)
+        np.testing.assert_allclose(ramped[rows], expected, atol=1e-4)
+        start += n
+    # no ramp is the step; a ramp boosts less than the step of the same reach, never more
+    step = cautious_targets(labels, meta, 1.1, near_scale=3.0, near_m=2.0)
+    np.testing.assert_allclose(
+        cautious_targets(labels, meta, 1.1, near_scale=3.0, near_m=2.0, ramp_m=0.0), step
+    )
+    plain = cautious_targets(labels, meta, 1.1)
+    away = pos[0] - pos[1]  # the close pair, 0.63 m apart: inside the ramp's full boost
+    flee = [(rot[0] @ lab[0]) @ away for lab in (plain, ramped, step)]
+    assert flee[0] + 0.3 < flee[1] <= flee[2] + 1e-6
+
+
+def test_the_scaled_separation_reaches_only_its_radius() -> None:
+    labels, meta = _flocks((9, 3, 12, 9), seed=8)
+    pos = meta["pos_world_enu"].astype(np.float64)
+    rot = quat_to_rotmat(meta["q_world_body"].astype(np.float64))
+    near = cautious_targets(labels, meta, 1.2, near_scale=2.0, near_m=1.2, reach_m=2.5)
+    start = 0
+    for n in (9, 3, 12, 9):
+        rows = slice(start, start + n)
+        expected = _boosted_law_body(pos[rows], rot[rows], 1.2, 2.0, radius=1.2, reach=2.5)
+        np.testing.assert_allclose(near[rows], expected, atol=1e-4)
+        start += n
+    # the far neighbours' separation is the paper's: nearer the stored labels than the law
+    # scaled everywhere, and a reach beyond the flock is that law
+    everywhere = cautious_targets(labels, meta, 1.2, near_scale=2.0, near_m=1.2)
+    assert np.abs(near - labels).mean() < np.abs(everywhere - labels).mean() - 0.01
+    far = cautious_targets(labels, meta, 1.2, near_scale=2.0, near_m=1.2, reach_m=20.0)
+    np.testing.assert_allclose(far, everywhere, atol=1e-5)
+
+
+def test_a_ramp_or_a_separation_reach_out_of_range_names_the_field(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="near_separation_ramp_m.*shorter"):
+        TrainConfig(dataset=tmp_path, out_dir=tmp_path, near_separation_ramp_m=1.2)
+    with pytest.raises(ConfigError, match="near_separation_ramp_m"):
+        TrainConfig(dataset=tmp_path, out_dir=tmp_path, near_separation_ramp_m=-0.1)
+    with pytest.raises(ConfigError, match="separation_radius_m.*at least"):
+        TrainConfig(
+            dataset=tmp_path,
+            out_dir=tmp_path,
+            near_separation_radius_m=1.35,
+            separation_radius_m=1.0,
+        )
+    with pytest.raises(ConfigError, match="separation_radius_m"):
+        TrainConfig(dataset=tmp_path, out_dir=tmp_path, separation_radius_m=50.0)
