@@ -10,8 +10,8 @@ The students since round 50 are taught a law whose separation weighs the neighbo
 --near-separation-radius`): a step in the label at R. A network that cannot place a neighbour to
 a few centimetres from its image answers the step blurred, too weak just inside R, where the
 faster flock's pairs close at the arrival. Two views of it, both against the taught law
-(`--separation-scale`, `--near-separation-scale`, `--near-separation-radius`, round 52's law by
-default):
+(`--separation-scale`, `--near-separation-scale`, `--near-separation-radius`,
+`--separation-radius`; round 52's law by default):
 
 - `--dataset` (held-out splits of recorded flocks, never trained on): every sample whose nearest
   neighbour is within `--within`; the policy's answer and the taught law's label, each projected
@@ -48,16 +48,25 @@ from sim_harness.learning.relabel import cautious_targets, separation_parts
 from sim_harness.sim.scenarios import build_scenario
 
 BINS_M = (0.8, 1.0, 1.1, 1.2, 1.3, 1.35, 1.4, 1.5, 1.6)
+# the taught law: (separation scale, near scale, near radius m, the scale's reach m or None)
+Law = tuple[float, float, float, float | None]
 
 
 def taught_law_world(
-    pos: np.ndarray, params: FlockingParams, scale: float, near_scale: float, near_m: float
+    pos: np.ndarray,
+    params: FlockingParams,
+    scale: float,
+    near_scale: float,
+    near_m: float,
+    reach_m: float | None = None,
 ) -> np.ndarray:
     """Separation + cohesion (N, 3) world m/s of one flock (N, 3) under the taught law: k_sep x
-    `scale`, the neighbours within `near_m` weighing `near_scale` in the separation sum (the
-    labels `learning.relabel.cautious_targets` trains on)."""
+    `scale` (on the neighbours within `reach_m`, if given), the neighbours within `near_m` weighing
+    `near_scale` in the separation sum (the labels `learning.relabel.cautious_targets` trains
+    on)."""
     offsets = pos[None, :, :] - pos[:, None, :]  # r_ij = p_j - p_i
-    sep, near, rey = separation_parts(offsets, ~np.eye(len(pos), dtype=bool), params, near_m)
+    valid = ~np.eye(len(pos), dtype=bool)
+    sep, near, rey = separation_parts(offsets, valid, params, near_m, reach_m=reach_m)
     return rey + (scale - 1.0) * sep + scale * (near_scale - 1.0) * near
 
 
@@ -96,18 +105,23 @@ def print_rows(rows: list[dict[str, Any]], title: str) -> None:
 
 
 def dataset_samples(
-    datasets: list[Path], splits: list[str], within_m: float, law: tuple[float, float, float]
+    datasets: list[Path], splits: list[str], within_m: float, law: Law
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(images, taught labels (N, 3), nearest distances, away directions) of every sample of the
     splits with a neighbour within `within_m`."""
-    scale, near_scale, near_m = law
+    scale, near_scale, near_m, reach_m = law
     images, labels, nearest, away = [], [], [], []
     for path in datasets:
         for name in splits:
             split = open_dataset(path).split(name)
             meta = {k: np.asarray(v) for k, v in split.meta.items()}
             taught = cautious_targets(
-                np.asarray(split.targets), meta, scale, near_scale=near_scale, near_m=near_m
+                np.asarray(split.targets),
+                meta,
+                scale,
+                near_scale=near_scale,
+                near_m=near_m,
+                reach_m=reach_m,
             )
             rows = np.flatnonzero(meta["nearest_m"] < within_m)
             images.append(np.asarray(split.images[rows]))
@@ -123,7 +137,7 @@ def dataset_samples(
 
 
 def flight_pairs(
-    run_dir: Path, experiment: str, seed: int, within_m: float, law: tuple[float, float, float]
+    run_dir: Path, experiment: str, seed: int, within_m: float, law: Law
 ) -> np.ndarray:
     """(K, 4) rows of (distance, CNN opening rate, taught law's, migration's) for every pair
     within `within_m` at every uncapped control step of one logged CNN flight."""
@@ -168,15 +182,23 @@ def main() -> None:
     parser.add_argument("--separation-scale", type=float, default=1.15)
     parser.add_argument("--near-separation-scale", type=float, default=2.0)
     parser.add_argument("--near-separation-radius", type=float, default=1.35)
+    parser.add_argument(
+        "--separation-radius", type=float, default=None, help="the scale's reach (default: all)"
+    )
     parser.add_argument("--out", type=Path, default=RESULTS / "boost_answer.json")
     args = parser.parse_args()
     if not (args.dataset and args.model) and not args.flights:
         parser.error("give --model with --dataset, or --flights")
-    law = (args.separation_scale, args.near_separation_scale, args.near_separation_radius)
+    law: Law = (
+        args.separation_scale,
+        args.near_separation_scale,
+        args.near_separation_radius,
+        args.separation_radius,
+    )
     start = time.perf_counter()
     report: dict[str, Any] = {
         "benchmark": "boost_answer",
-        "law": dict(zip(("separation_scale", "near_scale", "near_m"), law, strict=True)),
+        "law": dict(zip(("separation_scale", "near_scale", "near_m", "reach_m"), law, strict=True)),
         "within_m": args.within,
     }
     if args.dataset and args.model:

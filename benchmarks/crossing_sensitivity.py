@@ -26,7 +26,8 @@ Terms join with `+`: `sep1.15+near2` is the law `swarm-sim train --separation-sc
 times 1.15); with `--near-m 1.5`, the law `--near-separation-radius 1.5` teaches; with
 `--near-ramp-m W`, the near term ramps in over W metres inside `--near-m` (a neighbour's share of
 it rising linearly from 0 at `--near-m` to 1 at `--near-m` - W, the far term taking the rest),
-the law `--near-separation-ramp W` teaches.
+the law `--near-separation-ramp W` teaches; with `--scale-reach-m M`, `sepS` scales only the
+neighbours within M metres, the law `--separation-radius M` teaches.
 
 Each keeps the migration term and the speed cap exact, as the CNN's flight does. Per variant:
 seeds whose closest pair is within 0.1 m of the teacher's (the bar's criterion), the mean
@@ -59,7 +60,7 @@ from companion.flocking import (
 )
 from sim_harness.experiments.machine import machine
 from sim_harness.experiments.suites import EXPERIMENTS
-from sim_harness.learning.relabel import NEAR_M, RAMP_M, separation_parts
+from sim_harness.learning.relabel import NEAR_M, RAMP_M, SCALE_REACH_M, separation_parts
 from sim_harness.sim.controllers import SENSE_NEIGHBOURS, Observation, TeacherController
 from sim_harness.sim.rollout import fly, summarize
 from sim_harness.sim.scenarios import build_scenario
@@ -84,12 +85,14 @@ class StudentController:
         seed: int,
         near_m: float = NEAR_M,
         ramp_m: float = RAMP_M,
+        reach_m: float | None = SCALE_REACH_M,
     ) -> None:
         self.params = params
         self.terms = terms
         self.seed = seed
         self.near_m = near_m
         self.ramp_m = ramp_m
+        self.reach_m = reach_m
         self._rng = np.random.default_rng(seed)
 
     def reset(self, n_agents: int) -> None:
@@ -107,13 +110,16 @@ class StudentController:
         offsets = np.asarray(sensing.offsets_world_enu, dtype=float)
         separation, cohesion, _ = reynolds_from_offsets(offsets, valid, p)
         # the separation of the neighbours in range (ramped in), averaged over all of them as the
-        # law averages, and the rest
-        _, near_part, _ = separation_parts(offsets, valid, p, self.near_m, self.ramp_m)
-        parts = {"near": near_part, "far": separation - near_part}
-        for kind, part in parts.items():
-            if kind in t:
-                separation = separation + (t[kind] - 1.0) * part
-        reynolds = t.get("sep", 1.0) * separation + cohesion
+        # law averages, and the rest; and the share of those within the scale's reach
+        within, near_part, _ = separation_parts(
+            offsets, valid, p, self.near_m, self.ramp_m, self.reach_m
+        )
+        near_k, far_k = t.get("near", 1.0), t.get("far", 1.0)
+        within = within + (near_k - 1.0) * near_part + (far_k - 1.0) * (within - near_part)
+        separation = separation + (near_k - 1.0) * near_part
+        separation = separation + (far_k - 1.0) * (separation - near_k * near_part)
+        # `sepS`: k_sep x S on the neighbours within the reach (every one without a reach)
+        reynolds = separation + (t.get("sep", 1.0) - 1.0) * within + cohesion
         reynolds = t.get("rey", 1.0) * reynolds
         if "noise" in t:
             reynolds = reynolds + self._rng.normal(0.0, t["noise"], size=reynolds.shape)
@@ -145,16 +151,20 @@ def fly_one(
     experiment: str = "opposing",
     near_m: float = NEAR_M,
     ramp_m: float = RAMP_M,
+    reach_m: float | None = SCALE_REACH_M,
 ) -> dict[str, Any]:
     """One flight of an experiment (default opposing goals, N = 9) by the teacher or a student
-    whose near and far terms part at `near_m` (ramped over `ramp_m`)."""
+    whose near and far terms part at `near_m` (ramped over `ramp_m`), its `sepS` reaching
+    `reach_m`."""
     config = EXPERIMENTS[experiment].scenario_config(seed)
     params = config.flocking
     scenario = build_scenario(config)
     if variant == "teacher":
         controller: Any = TeacherController(params)
     else:
-        controller = StudentController(params, parse_variant(variant), seed, near_m, ramp_m)
+        controller = StudentController(
+            params, parse_variant(variant), seed, near_m, ramp_m, reach_m
+        )
     log = fly(scenario, controller)
     s = summarize(log)
     step = int(np.nanargmin(log.d_min_m))
@@ -216,6 +226,13 @@ def main() -> None:
         help="the near term ramps in over this many metres inside --near-m (default 0: a step)",
     )
     parser.add_argument(
+        "--scale-reach-m",
+        type=float,
+        default=SCALE_REACH_M,
+        help="sepS scales the neighbours within this many metres only, the law "
+        "`--separation-radius` teaches (default: every neighbour)",
+    )
+    parser.add_argument(
         "--out", type=Path, default=None, help="default results/crossing_sensitivity[_EXP].json"
     )
     args = parser.parse_args()
@@ -232,13 +249,17 @@ def main() -> None:
         parser.error(f"--near-m must be in 0.5-5 m, got {args.near_m}")
     if not 0.0 <= args.near_ramp_m < args.near_m:
         parser.error(f"--near-ramp-m must be in [0, --near-m), got {args.near_ramp_m}")
+    if args.scale_reach_m is not None and args.scale_reach_m < args.near_m:
+        parser.error(f"--scale-reach-m must reach at least --near-m, got {args.scale_reach_m}")
     if args.workers < 1:
         parser.error(f"--workers must be >= 1, got {args.workers}")
     start = time.perf_counter()
     order = ["teacher", *keys]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         futures = {
-            (v, s): pool.submit(fly_one, v, s, args.experiment, args.near_m, args.near_ramp_m)
+            (v, s): pool.submit(
+                fly_one, v, s, args.experiment, args.near_m, args.near_ramp_m, args.scale_reach_m
+            )
             for v in order
             for s in seeds
         }
@@ -268,6 +289,7 @@ def main() -> None:
         "seeds": [seeds[0], seeds[-1]],
         "near_m": args.near_m,
         "near_ramp_m": args.near_ramp_m,
+        "scale_reach_m": args.scale_reach_m,
         "pair_margin_m": PAIR_MARGIN_M,
         "teacher": {"order_mean": t_order, "under_1m": t_under, "flights": teacher},
         "variants": results,

@@ -45,6 +45,13 @@ def test_the_flights_law_is_the_training_labels_law() -> None:
     # the pair inside the boost flees harder than the paper's law has it
     away = (pos[0] - pos[1]) / np.linalg.norm(pos[0] - pos[1])
     assert (world[0] - world[1]) @ away > (plain[0] - plain[1]) @ away + 1.0
+    # `--separation-radius 2`: the labels of `swarm-sim train --separation-radius 2`
+    near_only = cautious_targets(
+        stored.astype(np.float32), meta, 1.15, near_scale=2.0, near_m=1.35, reach_m=2.0
+    )
+    reached = ba.taught_law_world(pos, params, 1.15, 2.0, 1.35, 2.0)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", rot, near_only), reached, atol=1e-4)
+    assert np.abs(reached - world).max() > 0.01
 
 
 def test_away_from_the_nearest_neighbour_in_the_body_frame() -> None:

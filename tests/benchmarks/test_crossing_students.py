@@ -105,6 +105,13 @@ def test_a_joined_student_flies_the_law_training_teaches() -> None:
         student.command(_observation(pos, goal)) - migration, ramped, atol=1e-5
     )
     assert np.abs(ramped - taught[1.2]).max() > 0.05  # the ramp weighs the pairs less
+    # `--scale-reach-m 1.5`: the law `--separation-radius 1.5` teaches
+    reached = cautious_targets(stored, meta, 1.15, params, near_scale=2.0, near_m=1.2, reach_m=1.5)
+    student = cs.StudentController(params, cs.parse_variant("sep1.15+near2"), 0, 1.2, 0.0, 1.5)
+    np.testing.assert_allclose(
+        student.command(_observation(pos, goal)) - migration, reached, atol=1e-5
+    )
+    assert np.abs(reached - taught[1.2]).max() > 0.05  # the far neighbours are the paper's
 
 
 def test_the_three_parts_sum_to_the_teachers_body_frame_command() -> None:
