@@ -10,17 +10,18 @@ separation sum (a close-range boost), without drawing one image again:
     label' = label + (S - 1) * R_body_world * separation(positions)
                    + S * (C - 1) * R_body_world * separation_near(positions)
 
-with separation() the whole separation term, or its share from the neighbours within M.
-
-where separation_near is the separation term's share from the neighbours within R (still
-averaged over all neighbours, as the law averages). With a ramp W > 0 the boost does not step in
+where separation is the whole separation term (or, with a reach M, its share from the neighbours
+within M) and separation_near its share from the neighbours within R (still averaged over all
+neighbours, as the law averages). With a ramp W > 0 the boost does not step in
 at R: a neighbour at distance d counts in separation_near with the share clip((R - d) / W, 0, 1),
 so its weight rises linearly from 1 at R to C at R - W and stays C closer. With a separation
 reach M (default: every neighbour), k_sep x S applies only to the neighbours closer than M: the
 caution where a neighbour can be hit, the paper's law for the far ones (whose 7/d terms, over the
-whole flock, are most of the label and most of what the paper's R² scores). A step is what a
-network learns worst: it answers it blurred, too weakly inside R and too strongly just outside
-(`benchmarks/boost_answer.py`); a ramp is a label it can follow.
+whole flock, are most of the label and most of what the paper's R² scores). A network answers the
+step blurred, too weakly inside R and too strongly just outside (`benchmarks/boost_answer.py`);
+a ramp is a label it can follow, but for the same cost in the paper's R² it holds the faster
+flock's pairs closer than the step does, while the reach M = 4 m keeps them and gains R²
+(docs/BENCHMARKS.md, "What the R² aim leaves for a cautious law").
 
 Why a student would learn a law other than the one it is judged against: the CNN's errors act on
 the flock like noise on the command, and the closest pair of a crossing is what such noise costs
