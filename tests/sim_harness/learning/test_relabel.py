@@ -128,17 +128,24 @@ def _boosted_law_body(
     return out
 
 
+def _assert_is_boosted_law(
+    got: np.ndarray, pos: np.ndarray, rot: np.ndarray, scale: float, near: float, **law: float
+) -> None:
+    """`got`, flock by flock (the sizes 9, 3, 12, 9 of the tests' `_flocks`), is the law's."""
+    start = 0
+    for n in (9, 3, 12, 9):
+        rows = slice(start, start + n)
+        expected = _boosted_law_body(pos[rows], rot[rows], scale, near, **law)
+        np.testing.assert_allclose(got[rows], expected, atol=1e-4)
+        start += n
+
+
 def test_the_close_range_boost_weighs_the_near_neighbours_only() -> None:
     labels, meta = _flocks((9, 3, 12, 9))
     pos = meta["pos_world_enu"].astype(np.float64)
     rot = quat_to_rotmat(meta["q_world_body"].astype(np.float64))
     boosted = cautious_targets(labels, meta, 1.1, near_scale=2.0)
-    start = 0
-    for n in (9, 3, 12, 9):
-        rows = slice(start, start + n)
-        expected = _boosted_law_body(pos[rows], rot[rows], 1.1, 2.0)
-        np.testing.assert_allclose(boosted[rows], expected, atol=1e-4)
-        start += n
+    _assert_is_boosted_law(boosted, pos, rot, 1.1, 2.0)
     # agents with no neighbour within 1.2 m get the k_sep x 1.1 labels unchanged by the boost
     d = np.linalg.norm(pos[:9, None] - pos[None, :9], axis=-1) + 10 * np.eye(9)
     alone = np.flatnonzero(d.min(axis=1) >= 1.2)
@@ -160,12 +167,7 @@ def test_the_close_range_boost_reaches_as_far_as_its_radius() -> None:
     pos = meta["pos_world_enu"].astype(np.float64)
     rot = quat_to_rotmat(meta["q_world_body"].astype(np.float64))
     wide = cautious_targets(labels, meta, 1.1, near_scale=2.0, near_m=2.5)
-    start = 0
-    for n in (9, 3, 12, 9):
-        rows = slice(start, start + n)
-        expected = _boosted_law_body(pos[rows], rot[rows], 1.1, 2.0, radius=2.5)
-        np.testing.assert_allclose(wide[rows], expected, atol=1e-4)
-        start += n
+    _assert_is_boosted_law(wide, pos, rot, 1.1, 2.0, radius=2.5)
     # a neighbour between 1.2 m and 2.5 m counts in the wide boost and not in the default one
     d = np.linalg.norm(pos[:9, None] - pos[None, :9], axis=-1) + 10 * np.eye(9)
     between = np.flatnonzero((d.min(axis=1) >= 1.2) & (d.min(axis=1) < 2.5))
@@ -184,12 +186,7 @@ def test_a_ramped_boost_rises_linearly_inside_its_reach() -> None:
     pos = meta["pos_world_enu"].astype(np.float64)
     rot = quat_to_rotmat(meta["q_world_body"].astype(np.float64))
     ramped = cautious_targets(labels, meta, 1.1, near_scale=3.0, near_m=2.0, ramp_m=0.8)
-    start = 0
-    for n in (9, 3, 12, 9):
-        rows = slice(start, start + n)
-        expected = _boosted_law_body(pos[rows], rot[rows], 1.1, 3.0, radius=2.0, ramp=0.8)
-        np.testing.assert_allclose(ramped[rows], expected, atol=1e-4)
-        start += n
+    _assert_is_boosted_law(ramped, pos, rot, 1.1, 3.0, radius=2.0, ramp=0.8)
     # no ramp is the step; a ramp boosts less than the step of the same reach, never more
     step = cautious_targets(labels, meta, 1.1, near_scale=3.0, near_m=2.0)
     np.testing.assert_allclose(
@@ -206,12 +203,7 @@ def test_the_scaled_separation_reaches_only_its_radius() -> None:
     pos = meta["pos_world_enu"].astype(np.float64)
     rot = quat_to_rotmat(meta["q_world_body"].astype(np.float64))
     near = cautious_targets(labels, meta, 1.2, near_scale=2.0, near_m=1.2, reach_m=2.5)
-    start = 0
-    for n in (9, 3, 12, 9):
-        rows = slice(start, start + n)
-        expected = _boosted_law_body(pos[rows], rot[rows], 1.2, 2.0, radius=1.2, reach=2.5)
-        np.testing.assert_allclose(near[rows], expected, atol=1e-4)
-        start += n
+    _assert_is_boosted_law(near, pos, rot, 1.2, 2.0, radius=1.2, reach=2.5)
     # the far neighbours' separation is the paper's: nearer the stored labels than the law
     # scaled everywhere, and a reach beyond the flock is that law
     everywhere = cautious_targets(labels, meta, 1.2, near_scale=2.0, near_m=1.2)
